@@ -1,0 +1,212 @@
+"""The ``osdar-ar`` command line.
+
+Sub-commands are small functions over the library; heavy imports happen inside them so
+that ``osdar-ar --help`` is instant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger("osdar_ar")
+
+
+class CliError(Exception):
+    """An error the user can act on: printed without a traceback, exit code 2."""
+
+
+def _progress_bar(total: int, desc: str) -> Any:
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, dynamic_ncols=True)
+
+
+# ---------------------------------------------------------------------------- synth
+def _add_synth(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "synth",
+        help="generate a synthetic OSDaR23-layout sequence with ground truth",
+        description="Generate a synthetic OSDaR23 sequence (cameras, lidar, INS) from a "
+        "procedural railway scene with the real OSDaR23 calibration; ground truth goes to "
+        "OUT/ground_truth/.",
+    )
+    p.add_argument("out", type=Path, help="output folder; its name is the sequence name")
+    p.add_argument("--scene", default="fire_site", help="scene preset (see --list-scenes)")
+    p.add_argument("--list-scenes", action="store_true", help="list scene presets and exit")
+    p.add_argument("--frames", type=int, default=100)
+    p.add_argument("--scale", type=float, default=0.25,
+                   help="image size relative to the real resolution (1.0 = 2464x1600, 4112x2504)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--cameras", default="rgb_center,rgb_highres_center")
+    p.add_argument("--lidar-density", type=float, default=1.0,
+                   help="fraction of the real lidars' rays (1.0 = OSDaR23 point counts)")
+    p.add_argument("--ins-profile", default="paper", help="INS error profile: paper, good, perfect")
+    p.add_argument("--ins", action="append", default=[], metavar="KEY=VALUE",
+                   help="override an INS error-model field, e.g. --ins latency_s=0.05 "
+                   "(JSON values: --ins 'jumps=[[40,[3,0,0]]]')")
+    p.add_argument("--speed", type=float, default=None, help="train speed m/s (scene default)")
+    p.add_argument("--stationary", action="store_true", help="train stands still")
+    p.add_argument("--far-origin", action="store_true",
+                   help="build and render the scene at UTM magnitudes (hard case 1)")
+    p.add_argument("--first-counter", type=int, default=0)
+    p.add_argument("--drop-frames", default="", help="comma-separated frame counters to drop")
+    p.add_argument("--pcd-data", default="binary", choices=["ascii", "binary", "binary_compressed"])
+    p.add_argument("--calibration", type=Path, default=None,
+                   help="OSDaR23 labels file with the real calibration "
+                   "(default: ../shared/data/osdar23/1_calibration_1.1_labels.json)")
+    p.add_argument("--force", action="store_true", help="replace OUT if it exists")
+    p.set_defaults(func=cmd_synth)
+
+
+def _parse_overrides(items: list[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise CliError(f"--ins {item!r}: expected KEY=VALUE")
+        key, value = item.split("=", 1)
+        try:
+            out[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key.strip()] = value
+    return out
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    from worker.synth.generator import SynthConfig, generate
+
+    if args.list_scenes:
+        from worker.synth.scenes import SCENES
+
+        for name in SCENES:
+            print(name)  # noqa: T201 - CLI output
+        return 0
+    out: Path = args.out
+    if out.exists():
+        if not args.force:
+            raise CliError(f"{out} exists: choose another folder or pass --force")
+        import shutil
+
+        shutil.rmtree(out)
+    drops = tuple(int(x) for x in args.drop_frames.split(",") if x.strip())
+    try:
+        cfg = SynthConfig(
+            scene=args.scene, frames=args.frames, scale=args.scale, seed=args.seed,
+            cameras=tuple(c.strip() for c in args.cameras.split(",") if c.strip()),
+            lidar_density=args.lidar_density, ins_profile=args.ins_profile,
+            ins_overrides=_parse_overrides(args.ins), speed_mps=args.speed,
+            stationary=args.stationary, far_origin=args.far_origin,
+            first_counter=args.first_counter, dropped_frames=drops, pcd_data=args.pcd_data,
+            calibration=args.calibration,
+        )
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+    bar = _progress_bar(args.frames - len(drops), f"synth {args.scene}")
+
+    def progress(done: int, total: int) -> None:
+        bar.update(done - bar.n)
+
+    try:
+        res = generate(out, cfg, progress=progress)
+    finally:
+        bar.close()
+    print(  # noqa: T201 - CLI output
+        f"wrote {res.folder} ({res.frames} frames) in {res.seconds:.1f} s: "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in res.stage_seconds.items())
+    )
+    return 0
+
+
+# ---------------------------------------------------------------------------- info
+def _add_info(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("info", help="validate an OSDaR23 sequence folder and summarise it")
+    p.add_argument("sequence", type=Path)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=cmd_info)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from worker.sequence_summary import summarize
+
+    summary = summarize(args.sequence)
+    if args.json:
+        print(json.dumps(summary, indent=1))  # noqa: T201 - CLI output
+    else:
+        for k, v in summary.items():
+            print(f"{k:>16}: {v}")  # noqa: T201 - CLI output
+    return 0
+
+
+# ---------------------------------------------------------------------------- demo
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "demo",
+        help="run the main job end to end on a synthetic sequence",
+        description="Make a synthetic sequence, run the pipeline that exists on it, "
+        "package the result as an archive and print the metrics.",
+    )
+    p.add_argument("--workdir", type=Path, default=Path("demo_out"))
+    p.add_argument("--scene", default="fire_site")
+    p.add_argument("--frames", type=int, default=30)
+    p.add_argument("--scale", type=float, default=0.25)
+    p.add_argument("--lidar-density", type=float, default=0.25)
+    p.set_defaults(func=cmd_demo)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from worker.demo import run_demo
+
+    bar = _progress_bar(args.frames, "demo")
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        result = run_demo(
+            args.workdir, scene=args.scene, frames=args.frames, scale=args.scale,
+            lidar_density=args.lidar_density, progress=progress,
+        )
+    finally:
+        bar.close()
+    print(json.dumps(result["metrics"], indent=1))  # noqa: T201 - CLI output
+    print(f"archive: {result['archive']}")  # noqa: T201 - CLI output
+    return 0
+
+
+# ---------------------------------------------------------------------------- main
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="osdar-ar",
+        description="Augmented railway perception data in the OSDaR23 layout.",
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0)
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_synth(sub)
+    _add_info(sub)
+    _add_demo(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    from worker.osdar.errors import SequenceError
+
+    try:
+        return int(args.func(args) or 0)
+    except (CliError, SequenceError, FileNotFoundError) as exc:
+        print(f"osdar-ar {args.command}: error: {exc}", file=sys.stderr)  # noqa: T201
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

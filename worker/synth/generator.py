@@ -1,0 +1,523 @@
+"""The synthetic OSDaR23 sequence generator (the project's digital twin).
+
+A procedural railway scene is driven through by a train carrying the real OSDaR23 sensor
+set-up (calibration from the shared real labels file); every frame it writes both front
+cameras (moderngl, real lens distortion), the merged lidar cloud of the six lidars
+(open3d ray casting), and the three NovAtel INS CSVs with a configurable error model, in
+the OSDaR23 layout. ``ground_truth/`` holds what the pipeline must never read while it
+runs: true poses, the true INS misalignment, lidar mounting poses, centrelines, and
+landmarks with their true pixel positions per frame.
+
+Recipe, per frame: true pose at each sensor's timestamp -> render cameras -> cast lidar
+-> write files; then INS, labels and ground truth for the whole sequence.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from renderer.camera import CameraModel, load_cameras
+from renderer.transforms import T_to_pose, invert_T, transform_points
+from worker.geodesy import WorldFrame
+from worker.osdar.pcd import PointCloud, header_for_fields
+from worker.osdar.writer import SequenceWriter
+from worker.poses import PoseTrack
+from worker.synth.ins_sim import HAMBURG, InsErrorModel, simulate_ins
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+DEFAULT_CAMERAS = ("rgb_center", "rgb_highres_center")
+FRAME_PERIOD_NS = 100_000_000  # 10 Hz
+# Offsets of each stream's timestamp from the frame's nominal time (ns), of the size seen
+# in OSDaR23 (lidar 0.5 ms early, cameras a few ms apart): hard case 12 of BENCHMARK.md.
+STREAM_OFFSET_NS = {"lidar": -496_000, "rgb_center": 0, "rgb_highres_center": 2_100_030}
+DEFAULT_START_NS = 1_631_441_453_300_000_000  # the real sequence 1_calibration_1.1's first frame
+# Landmarks hidden by the scene closer than this to themselves (m) count as occluded.
+OCCLUSION_EPS_M = 0.15
+# A UTM-like offset for the far-origin hard case (m).
+FAR_ORIGIN_OFFSET = np.array([566_000.0, 5_933_000.0, 30.0])
+
+
+def project_root() -> Path:
+    """The folder that holds pyproject.toml (the checkout)."""
+    return Path(__file__).resolve().parents[2]
+
+
+def default_calibration_path() -> Path:
+    """The real OSDaR23 labels file with the real calibration, beside the project."""
+    return project_root().parent / "shared/data/osdar23/1_calibration_1.1_labels.json"
+
+
+@dataclass
+class SynthConfig:
+    """What to generate. Defaults make the paper-like 100-frame sequence at scale 0.25."""
+
+    scene: str = "fire_site"
+    frames: int = 100
+    scale: float = 0.25
+    seed: int = 0
+    cameras: tuple[str, ...] = DEFAULT_CAMERAS
+    lidar_density: float = 1.0
+    ins_profile: str = "paper"
+    ins_overrides: dict[str, Any] = field(default_factory=dict)
+    speed_mps: float | None = None  # None: the scene's own speed
+    stationary: bool = False
+    far_origin: bool = False
+    first_counter: int = 0
+    start_ns: int = DEFAULT_START_NS
+    dropped_frames: tuple[int, ...] = ()  # frame counters left out (a dropped frame)
+    pcd_data: str = "binary"
+    png_compression: int = 1
+    calibration: Path | None = None
+    scene_params: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.frames < 1:
+            raise ValueError("frames must be >= 1")
+        if not 0.01 <= self.scale <= 1.0:
+            raise ValueError("scale must be in [0.01, 1]")
+        if not 0.0 < self.lidar_density <= 1.0:
+            raise ValueError("lidar_density must be in (0, 1]")
+        if self.pcd_data not in ("ascii", "binary", "binary_compressed"):
+            raise ValueError("pcd_data must be ascii, binary or binary_compressed")
+
+
+@dataclass
+class FrameTimes:
+    """Integer-nanosecond timestamps of one frame per stream (exact strings for file names)."""
+
+    counter: int
+    ns: dict[str, int]
+
+    def seconds(self, stream: str) -> float:
+        return self.ns[stream] / 1e9
+
+    def string(self, stream: str) -> str:
+        return ns_to_string(self.ns[stream])
+
+
+def ns_to_string(t_ns: int) -> str:
+    """UNIX nanoseconds -> the OSDaR23 timestamp string with 9 decimals."""
+    return f"{t_ns // 1_000_000_000}.{t_ns % 1_000_000_000:09d}"
+
+
+def frame_schedule(cfg: SynthConfig, streams: list[str]) -> list[FrameTimes]:
+    """Counters and per-stream timestamps of the frames written (dropped frames skipped)."""
+    rng = np.random.default_rng(cfg.seed + 17)
+    out = []
+    for i in range(cfg.frames):
+        counter = cfg.first_counter + i
+        if counter in cfg.dropped_frames:
+            continue
+        base = cfg.start_ns + i * FRAME_PERIOD_NS
+        jitter = int(rng.integers(-200, 200))  # sub-microsecond trigger jitter
+        ns = {s: base + STREAM_OFFSET_NS.get(s, 1_000) + jitter for s in streams}
+        out.append(FrameTimes(counter, ns))
+    return out
+
+
+class Trajectory:
+    """The train's true motion along the ego track: T_S_base(t) in the scene frame.
+
+    Arc length s(t) = s0 + v t + a t^2 / 2 (gentle acceleration), plus small body motion of
+    the vehicle on its suspension (sway, bounce, pitch and roll oscillations of mm and
+    hundredths of a degree), which no rail-only model can follow.
+    """
+
+    def __init__(self, track: Any, t0: float, speed: float, accel: float, s0: float,
+                 seed: int, body_motion: bool = True) -> None:
+        self.track = track
+        self.t0, self.speed, self.accel, self.s0 = t0, speed, accel, s0
+        rng = np.random.default_rng(seed + 101)
+        self.phase = rng.uniform(0, 2 * np.pi, 5)
+        self.body = body_motion and speed > 0.0
+
+    def arclength(self, t: F64) -> F64:
+        dt = np.asarray(t, dtype=np.float64) - self.t0
+        return self.s0 + self.speed * dt + 0.5 * self.accel * dt * dt
+
+    def __call__(self, t: F64) -> F64:
+        """(m,) UNIX seconds -> (m, 4, 4) T_S_base."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        T = self.track.frame_at(self.arclength(t))
+        if not self.body:
+            return T
+        dt = t - self.t0
+        ph = self.phase
+        sway = 0.006 * np.sin(2 * np.pi * 0.7 * dt + ph[0])  # m, lateral
+        bounce = 0.004 * np.sin(2 * np.pi * 1.3 * dt + ph[1])  # m, vertical
+        pitch = np.deg2rad(0.03) * np.sin(2 * np.pi * 1.1 * dt + ph[2])
+        roll = np.deg2rad(0.04) * np.sin(2 * np.pi * 0.9 * dt + ph[3])
+        yaw = np.deg2rad(0.01) * np.sin(2 * np.pi * 0.5 * dt + ph[4])
+        from scipy.spatial.transform import Rotation
+
+        R_body = Rotation.from_euler("xyz", np.stack([roll, pitch, yaw], 1)).as_matrix()
+        T_body = np.tile(np.eye(4), (len(t), 1, 1))
+        T_body[:, :3, :3] = R_body
+        T_body[:, 1, 3] = sway
+        T_body[:, 2, 3] = bounce
+        return T @ T_body
+
+
+def _load_calibration(cfg: SynthConfig) -> dict[str, Any]:
+    path = Path(cfg.calibration) if cfg.calibration else default_calibration_path()
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"real OSDaR23 calibration not found at {path}: pass --calibration with an "
+            "OSDaR23 labels file (e.g. shared/data/osdar23/1_calibration_1.1_labels.json)"
+        )
+    return json.loads(path.read_text())
+
+
+def _labels_skeleton(real: dict[str, Any], name: str, cams: dict[str, CameraModel]) -> dict:
+    """OpenLABEL dict with the real calibration, scaled intrinsics for written cameras."""
+    ol = real["openlabel"]
+    meta = dict(ol["metadata"])
+    meta["name"] = f"synthetic sequence {name}"
+    meta["tagged_file"] = name
+    meta["comment"] = (
+        "Synthetic OSDaR23-layout sequence made by osdar-ar's generator with the real "
+        "OSDaR23 calibration. " + str(meta.get("comment", ""))
+    )
+    streams = json.loads(json.dumps(ol["streams"]))
+    for cname, cam in cams.items():
+        intr = streams[cname]["stream_properties"]["intrinsics_pinhole"]
+        K = cam.K
+        intr["camera_matrix"] = [
+            K[0, 0], K[0, 1], K[0, 2], 0.0, K[1, 0], K[1, 1], K[1, 2], 0.0, 0.0, 0.0, 1.0, 0.0,
+        ]
+        intr["width_px"] = cam.width
+        intr["height_px"] = cam.height
+    return {
+        "openlabel": {
+            "metadata": meta,
+            "coordinate_systems": json.loads(json.dumps(ol["coordinate_systems"])),
+            "streams": streams,
+            "objects": {},
+            "frames": {},
+            "frame_intervals": [],
+        }
+    }
+
+
+def _frame_entry(ft: FrameTimes, cameras: tuple[str, ...]) -> dict[str, Any]:
+    streams = {}
+    for cam in cameras:
+        streams[cam] = {
+            "stream_properties": {"sync": {"timestamp": ft.string(cam)}},
+            "uri": f"/{cam}/{ft.counter:03d}_{ft.string(cam)}.png",
+        }
+    streams["lidar"] = {
+        "stream_properties": {"sync": {"timestamp": ft.string("lidar")}},
+        "uri": f"/lidar/{ft.counter:03d}_{ft.string('lidar')}.pcd",
+    }
+    return {
+        "frame_properties": {
+            "timestamp": ft.string("lidar"),
+            "streams": streams,
+            "frame_data": {"num": []},
+        },
+        "objects": {},
+    }
+
+
+class LandmarkVisibility:
+    """Occlusion test of landmarks from a camera centre by ray casting the scene mesh."""
+
+    def __init__(self, mesh: Any, origin: F64) -> None:
+        import open3d as o3d
+
+        self.origin = origin
+        scene = o3d.t.geometry.RaycastingScene()
+        v = (mesh.vertices - origin).astype(np.float32)
+        scene.add_triangles(
+            o3d.core.Tensor(v), o3d.core.Tensor(mesh.faces.astype(np.uint32))
+        )
+        self.scene = scene
+
+    def visible(self, c_S: F64, p_S: F64) -> NDArray[np.bool_]:
+        """Camera centre (3,) and points (n, 3) in the scene frame -> (n,) unoccluded."""
+        import open3d as o3d
+
+        d = p_S - c_S
+        dist = np.linalg.norm(d, axis=1)
+        rays = np.concatenate(
+            [np.broadcast_to(c_S - self.origin, d.shape), d / dist[:, None]], axis=1
+        ).astype(np.float32)
+        hit = self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        return hit >= dist - OCCLUSION_EPS_M
+
+
+@dataclass
+class SynthResult:
+    folder: Path
+    frames: int
+    seconds: float
+    stage_seconds: dict[str, float]
+
+
+def generate(
+    out: Path, cfg: SynthConfig, progress: Callable[[int, int], None] | None = None
+) -> SynthResult:
+    """Write a synthetic OSDaR23 sequence to ``out`` (its name is the sequence name).
+
+    Nothing half-written is ever visible: everything goes to ``out.partial`` and is renamed
+    into place at the end.
+    """
+    from worker.synth.camera_sim import CameraSimulator
+    from worker.synth.lidar_sim import LidarSimulator, default_sensors, sensors_to_json
+    from worker.synth.scenes import build_scene
+
+    t_start = time.perf_counter()
+    stages: dict[str, float] = {}
+    out = Path(out)
+    name = out.name
+    real = _load_calibration(cfg)
+    cams_full = load_cameras(real, list(cfg.cameras))
+    cams = {n: c.scaled(cfg.scale) for n, c in cams_full.items()}
+
+    schedule = frame_schedule(cfg, ["lidar", *cfg.cameras])
+    t0 = cfg.start_ns / 1e9
+    duration = cfg.frames * FRAME_PERIOD_NS / 1e9
+
+    tic = time.perf_counter()
+    offset = FAR_ORIGIN_OFFSET if cfg.far_origin else np.zeros(3)
+    scene_probe = build_scene(cfg.scene, seed=cfg.seed, length_m=10.0, **cfg.scene_params)
+    speed = 0.0 if cfg.stationary else (
+        cfg.speed_mps if cfg.speed_mps is not None else scene_probe.speed_mps
+    )
+    s0 = 30.0
+    driven = s0 + speed * duration * 1.1 + 1.0
+    scene = build_scene(
+        cfg.scene, seed=cfg.seed, length_m=driven, origin_offset=offset, **cfg.scene_params
+    )
+    stages["scene"] = time.perf_counter() - tic
+    traj = Trajectory(scene.ego, t0, speed, 0.0, s0, cfg.seed)
+    T_ref_S = np.eye(4)
+    T_ref_S[:3, 3] = -offset
+
+    tic = time.perf_counter()
+    camsim = CameraSimulator(scene, cams, seed=cfg.seed)
+    sensors = default_sensors(density=cfg.lidar_density)
+    lidar = LidarSimulator(scene.mesh, sensors, origin=traj(np.array([t0]))[0, :3, 3],
+                           seed=cfg.seed)
+    vis = LandmarkVisibility(scene.mesh, origin=traj(np.array([t0]))[0, :3, 3])
+    stages["setup"] = time.perf_counter() - tic
+
+    labels = _labels_skeleton(real, name, cams)
+    ol = labels["openlabel"]
+    lm_xyz_S = np.array([lm.xyz for lm in scene.landmarks]).reshape(-1, 3)
+    lm_pixels: dict[str, dict[str, dict[str, Any]]] = {
+        lm.id: {c: {} for c in cfg.cameras} for lm in scene.landmarks
+    }
+    stages.update({"render": 0.0, "lidar": 0.0, "write": 0.0, "landmarks": 0.0})
+    writer = SequenceWriter(out, name=name)
+    with writer:
+        for k, ft in enumerate(schedule):
+            for cname in cfg.cameras:
+                T_S_base = traj(np.array([ft.seconds(cname)]))[0]
+                tic = time.perf_counter()
+                img = camsim.render(cname, T_S_base)
+                stages["render"] += time.perf_counter() - tic
+                tic = time.perf_counter()
+                writer.write_image(
+                    f"/{cname}/{ft.counter:03d}_{ft.string(cname)}.png", img,
+                    compression=cfg.png_compression,
+                )
+                stages["write"] += time.perf_counter() - tic
+                tic = time.perf_counter()
+                _landmark_pixels(
+                    lm_pixels, scene.landmarks, lm_xyz_S, cams_full[cname], T_S_base, vis,
+                    ft.counter,
+                )
+                stages["landmarks"] += time.perf_counter() - tic
+            tic = time.perf_counter()
+            scan = lidar.scan(ft.seconds("lidar"), traj)
+            stages["lidar"] += time.perf_counter() - tic
+            tic = time.perf_counter()
+            cloud = _cloud_from_scan(scan, cfg.pcd_data)
+            writer.write_pcd(f"/lidar/{ft.counter:03d}_{ft.string('lidar')}.pcd", cloud)
+            stages["write"] += time.perf_counter() - tic
+            ol["frames"][str(ft.counter)] = _frame_entry(ft, cfg.cameras)
+            if progress is not None:
+                progress(k + 1, len(schedule))
+        counters = [ft.counter for ft in schedule]
+        ol["frame_intervals"] = _intervals(counters)
+
+        # INS for the whole sequence, at the lidar timestamps (the frame's clock).
+        tic = time.perf_counter()
+        ref = HAMBURG
+        model = InsErrorModel.profile(cfg.ins_profile, seed=cfg.seed, **cfg.ins_overrides)
+        t_lidar = np.array([ft.seconds("lidar") for ft in schedule])
+
+        def true_ref(t: F64) -> F64:
+            return T_ref_S @ traj(t)
+
+        sim = simulate_ins(true_ref, t_lidar, np.array(counters), model, true_world=ref)
+        _write_ins(writer, sim, schedule)
+        stages["ins"] = time.perf_counter() - tic
+
+        tic = time.perf_counter()
+        T_W_S = sim.world.T_world_other(ref) @ T_ref_S
+        _write_ground_truth(
+            writer.root / "ground_truth", cfg, scene, traj, schedule, T_W_S, sim, sensors,
+            sensors_to_json, lm_pixels, cams_full,
+        )
+        stages["ground_truth"] = time.perf_counter() - tic
+        writer.finish(labels)
+    total = time.perf_counter() - t_start
+    log.info("synthetic sequence %s: %d frames in %.1f s (%s)", out, len(schedule), total,
+             ", ".join(f"{k} {v:.1f}s" for k, v in stages.items()))
+    return SynthResult(out, len(schedule), total, stages)
+
+
+def _intervals(counters: list[int]) -> list[dict[str, int]]:
+    """Contiguous runs of frame counters as OpenLABEL frame intervals."""
+    out: list[dict[str, int]] = []
+    for c in sorted(counters):
+        if out and c == out[-1]["frame_end"] + 1:
+            out[-1]["frame_end"] = c
+        else:
+            out.append({"frame_start": c, "frame_end": c})
+    return out
+
+
+def _landmark_pixels(
+    store: dict, landmarks: list, xyz_S: F64, cam_full: CameraModel, T_S_base: F64,
+    vis: LandmarkVisibility, counter: int,
+) -> None:
+    if len(xyz_S) == 0:
+        return
+    uv, ok = cam_full.project_world(xyz_S, T_S_base)
+    ok &= cam_full.in_image(uv)
+    if np.any(ok):
+        c_S = (T_S_base @ cam_full.T_base_opt)[:3, 3]
+        idx = np.flatnonzero(ok)
+        ok[idx] = vis.visible(c_S, xyz_S[idx])
+    for i, lm in enumerate(landmarks):
+        store[lm.id][cam_full.name][str(counter)] = (
+            [float(uv[i, 0]), float(uv[i, 1])] if ok[i] else None
+        )
+
+
+def _cloud_from_scan(scan: dict[str, np.ndarray], data: str) -> PointCloud:
+    fields = {
+        "x": scan["x"].astype(np.float32),
+        "y": scan["y"].astype(np.float32),
+        "z": scan["z"].astype(np.float32),
+        "intensity": scan["intensity"].astype(np.float32),
+        "timestamp": scan["timestamp"].astype(np.float64),
+        "sensor_index": scan["sensor_index"].astype(np.uint8),
+    }
+    return PointCloud(fields=fields, header=header_for_fields(fields, data=data))
+
+
+def _write_ins(writer: SequenceWriter, sim: Any, schedule: list[FrameTimes]) -> None:
+    by_counter = {ft.counter: ft for ft in schedule}
+    for folder, table in (
+        ("novatel_oem7_inspva", sim.inspva),
+        ("novatel_oem7_insstdev", sim.insstdev),
+        ("novatel_oem7_corrimu", sim.corrimu),
+    ):
+        names = [
+            f"{int(c):03d}_{by_counter[int(c)].string('lidar')}.csv" for c in table.frame_idx
+        ]
+        writer.write_ins(folder, table, names)
+
+
+def _write_ground_truth(
+    gt: Path, cfg: SynthConfig, scene: Any, traj: Trajectory, schedule: list[FrameTimes],
+    T_W_S: F64, sim: Any, sensors: list, sensors_to_json: Callable, lm_pixels: dict,
+    cams_full: dict[str, CameraModel],
+) -> None:
+    gt.mkdir(parents=True, exist_ok=True)
+    counters = np.array([ft.counter for ft in schedule])
+    t_lidar = np.array([ft.seconds("lidar") for ft in schedule])
+    T_W_base = T_W_S @ traj(t_lidar)
+    PoseTrack(t_lidar, T_W_base, frame_idx=counters).to_csv(gt / "poses.csv", counters)
+    # Dense truth (every 10 ms) for interpolation at any sensor's timestamp.
+    t_dense = np.arange(t_lidar[0] - 0.05, t_lidar[-1] + 0.05, 0.01)
+    PoseTrack(t_dense, T_W_S @ traj(t_dense)).to_csv(gt / "poses_dense.csv")
+    _dump(gt / "world.json", sim.world.to_json())
+    _dump(gt / "ins_to_lidar.json", sim.ins_to_lidar.to_json())
+    _dump(gt / "lidar_origins.json", sensors_to_json(sensors))
+    cl = []
+    for tr in scene.tracks:
+        s = np.arange(0.0, tr.length, 1.0)
+        s = np.append(s, tr.length) if s[-1] < tr.length else s
+        pts = transform_points(T_W_S, tr.point(s))
+        cl.append({"id": str(tr.id), "ego": tr is scene.ego, "s": s.tolist(),
+                   "xyz": pts.tolist(), "cant_rad": tr.roll(s).tolist()})
+    _dump(gt / "centrelines.json", cl)
+    lms = []
+    for lm in scene.landmarks:
+        xyz_W = transform_points(T_W_S, np.asarray(lm.xyz, dtype=np.float64)[None])[0]
+        lms.append({"id": lm.id, "kind": lm.kind, "xyz": xyz_W.tolist(),
+                    "pixels": lm_pixels[lm.id]})
+    _dump(gt / "landmarks.json", lms)
+    t_, q_ = T_to_pose(T_W_S)
+    _dump(gt / "meta.json", {
+        "generator": "osdar-ar synth",
+        "scene": cfg.scene,
+        "seed": cfg.seed,
+        "frames": len(schedule),
+        "scale": cfg.scale,
+        "cameras_full_resolution": {n: c.to_json() for n, c in cams_full.items()},
+        "stationary": cfg.stationary,
+        "far_origin": cfg.far_origin,
+        "dropped_frames": list(cfg.dropped_frames),
+        "ins_dropped_frames": [int(x) for x in sim.dropped_frames],
+        "ins_profile": cfg.ins_profile,
+        "ins_model": json.loads(
+            InsErrorModel.profile(cfg.ins_profile, seed=cfg.seed, **cfg.ins_overrides)
+            .model_dump_json()
+        ),
+        "speed_mps": traj.speed,
+        "T_world_scene": {"translation": t_.tolist(), "quaternion": q_.tolist()},
+        "pixel_convention": "OpenCV: integer coordinates at pixel centres, full resolution",
+    })
+
+
+def _dump(path: Path, obj: Any) -> None:
+    path.write_text(json.dumps(obj, indent=1))
+
+
+def iter_scene_names() -> Iterator[str]:
+    from worker.synth.scenes import SCENES
+
+    yield from SCENES
+
+
+def world_of(folder: Path) -> WorldFrame:
+    """The world frame a synthetic sequence's ground truth is expressed in."""
+    return WorldFrame.from_json(json.loads((Path(folder) / "ground_truth/world.json").read_text()))
+
+
+def true_camera_pose(track: PoseTrack, cam: CameraModel, t: float) -> F64:
+    """T_world_opt of ``cam`` at time ``t`` from a true base track."""
+    return track.interpolate(np.array([t]))[0] @ cam.T_base_opt
+
+
+__all__ = [
+    "SynthConfig",
+    "SynthResult",
+    "Trajectory",
+    "default_calibration_path",
+    "frame_schedule",
+    "generate",
+    "invert_T",
+    "ns_to_string",
+    "true_camera_pose",
+    "world_of",
+]
