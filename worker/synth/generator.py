@@ -135,8 +135,16 @@ class Trajectory:
     hundredths of a degree), which no rail-only model can follow.
     """
 
-    def __init__(self, track: Any, t0: float, speed: float, accel: float, s0: float,
-                 seed: int, body_motion: bool = True) -> None:
+    def __init__(
+        self,
+        track: Any,
+        t0: float,
+        speed: float,
+        accel: float,
+        s0: float,
+        seed: int,
+        body_motion: bool = True,
+    ) -> None:
         self.track = track
         self.t0, self.speed, self.accel, self.s0 = t0, speed, accel, s0
         rng = np.random.default_rng(seed + 101)
@@ -195,7 +203,18 @@ def _labels_skeleton(real: dict[str, Any], name: str, cams: dict[str, CameraMode
         intr = streams[cname]["stream_properties"]["intrinsics_pinhole"]
         K = cam.K
         intr["camera_matrix"] = [
-            K[0, 0], K[0, 1], K[0, 2], 0.0, K[1, 0], K[1, 1], K[1, 2], 0.0, 0.0, 0.0, 1.0, 0.0,
+            K[0, 0],
+            K[0, 1],
+            K[0, 2],
+            0.0,
+            K[1, 0],
+            K[1, 1],
+            K[1, 2],
+            0.0,
+            0.0,
+            0.0,
+            1.0,
+            0.0,
         ]
         intr["width_px"] = cam.width
         intr["height_px"] = cam.height
@@ -241,9 +260,7 @@ class LandmarkVisibility:
         self.origin = origin
         scene = o3d.t.geometry.RaycastingScene()
         v = (mesh.vertices - origin).astype(np.float32)
-        scene.add_triangles(
-            o3d.core.Tensor(v), o3d.core.Tensor(mesh.faces.astype(np.uint32))
-        )
+        scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(mesh.faces.astype(np.uint32)))
         self.scene = scene
 
     def visible(self, c_S: F64, p_S: F64) -> NDArray[np.bool_]:
@@ -294,8 +311,10 @@ def generate(
     tic = time.perf_counter()
     offset = FAR_ORIGIN_OFFSET if cfg.far_origin else np.zeros(3)
     scene_probe = build_scene(cfg.scene, seed=cfg.seed, length_m=10.0, **cfg.scene_params)
-    speed = 0.0 if cfg.stationary else (
-        cfg.speed_mps if cfg.speed_mps is not None else scene_probe.speed_mps
+    speed = (
+        0.0
+        if cfg.stationary
+        else (cfg.speed_mps if cfg.speed_mps is not None else scene_probe.speed_mps)
     )
     s0 = 30.0
     driven = s0 + speed * duration * 1.1 + 1.0
@@ -310,8 +329,9 @@ def generate(
     tic = time.perf_counter()
     camsim = CameraSimulator(scene, cams, seed=cfg.seed)
     sensors = default_sensors(density=cfg.lidar_density)
-    lidar = LidarSimulator(scene.mesh, sensors, origin=traj(np.array([t0]))[0, :3, 3],
-                           seed=cfg.seed)
+    lidar = LidarSimulator(
+        scene.mesh, sensors, origin=traj(np.array([t0]))[0, :3, 3], seed=cfg.seed
+    )
     vis = LandmarkVisibility(scene.mesh, origin=traj(np.array([t0]))[0, :3, 3])
     stages["setup"] = time.perf_counter() - tic
 
@@ -332,13 +352,19 @@ def generate(
                 stages["render"] += time.perf_counter() - tic
                 tic = time.perf_counter()
                 writer.write_image(
-                    f"/{cname}/{ft.counter:03d}_{ft.string(cname)}.png", img,
+                    f"/{cname}/{ft.counter:03d}_{ft.string(cname)}.png",
+                    img,
                     compression=cfg.png_compression,
                 )
                 stages["write"] += time.perf_counter() - tic
                 tic = time.perf_counter()
                 _landmark_pixels(
-                    lm_pixels, scene.landmarks, lm_xyz_S, cams_full[cname], T_S_base, vis,
+                    lm_pixels,
+                    scene.landmarks,
+                    lm_xyz_S,
+                    cams_full[cname],
+                    T_S_base,
+                    vis,
                     ft.counter,
                 )
                 stages["landmarks"] += time.perf_counter() - tic
@@ -371,14 +397,28 @@ def generate(
         tic = time.perf_counter()
         T_W_S = sim.world.T_world_other(ref) @ T_ref_S
         _write_ground_truth(
-            writer.root / "ground_truth", cfg, scene, traj, schedule, T_W_S, sim, sensors,
-            sensors_to_json, lm_pixels, cams_full,
+            writer.root / "ground_truth",
+            cfg,
+            scene,
+            traj,
+            schedule,
+            T_W_S,
+            sim,
+            sensors,
+            sensors_to_json,
+            lm_pixels,
+            cams_full,
         )
         stages["ground_truth"] = time.perf_counter() - tic
         writer.finish(labels)
     total = time.perf_counter() - t_start
-    log.info("synthetic sequence %s: %d frames in %.1f s (%s)", out, len(schedule), total,
-             ", ".join(f"{k} {v:.1f}s" for k, v in stages.items()))
+    log.info(
+        "synthetic sequence %s: %d frames in %.1f s (%s)",
+        out,
+        len(schedule),
+        total,
+        ", ".join(f"{k} {v:.1f}s" for k, v in stages.items()),
+    )
     return SynthResult(out, len(schedule), total, stages)
 
 
@@ -394,8 +434,13 @@ def _intervals(counters: list[int]) -> list[dict[str, int]]:
 
 
 def _landmark_pixels(
-    store: dict, landmarks: list, xyz_S: F64, cam_full: CameraModel, T_S_base: F64,
-    vis: LandmarkVisibility, counter: int,
+    store: dict,
+    landmarks: list,
+    xyz_S: F64,
+    cam_full: CameraModel,
+    T_S_base: F64,
+    vis: LandmarkVisibility,
+    counter: int,
 ) -> None:
     if len(xyz_S) == 0:
         return
@@ -430,15 +475,21 @@ def _write_ins(writer: SequenceWriter, sim: Any, schedule: list[FrameTimes]) -> 
         ("novatel_oem7_insstdev", sim.insstdev),
         ("novatel_oem7_corrimu", sim.corrimu),
     ):
-        names = [
-            f"{int(c):03d}_{by_counter[int(c)].string('lidar')}.csv" for c in table.frame_idx
-        ]
+        names = [f"{int(c):03d}_{by_counter[int(c)].string('lidar')}.csv" for c in table.frame_idx]
         writer.write_ins(folder, table, names)
 
 
 def _write_ground_truth(
-    gt: Path, cfg: SynthConfig, scene: Any, traj: Trajectory, schedule: list[FrameTimes],
-    T_W_S: F64, sim: Any, sensors: list, sensors_to_json: Callable, lm_pixels: dict,
+    gt: Path,
+    cfg: SynthConfig,
+    scene: Any,
+    traj: Trajectory,
+    schedule: list[FrameTimes],
+    T_W_S: F64,
+    sim: Any,
+    sensors: list,
+    sensors_to_json: Callable,
+    lm_pixels: dict,
     cams_full: dict[str, CameraModel],
 ) -> None:
     gt.mkdir(parents=True, exist_ok=True)
@@ -457,36 +508,48 @@ def _write_ground_truth(
         s = np.arange(0.0, tr.length, 1.0)
         s = np.append(s, tr.length) if s[-1] < tr.length else s
         pts = transform_points(T_W_S, tr.point(s))
-        cl.append({"id": str(tr.id), "ego": tr is scene.ego, "s": s.tolist(),
-                   "xyz": pts.tolist(), "cant_rad": tr.roll(s).tolist()})
+        cl.append(
+            {
+                "id": str(tr.id),
+                "ego": tr is scene.ego,
+                "s": s.tolist(),
+                "xyz": pts.tolist(),
+                "cant_rad": tr.roll(s).tolist(),
+            }
+        )
     _dump(gt / "centrelines.json", cl)
     lms = []
     for lm in scene.landmarks:
         xyz_W = transform_points(T_W_S, np.asarray(lm.xyz, dtype=np.float64)[None])[0]
-        lms.append({"id": lm.id, "kind": lm.kind, "xyz": xyz_W.tolist(),
-                    "pixels": lm_pixels[lm.id]})
+        lms.append(
+            {"id": lm.id, "kind": lm.kind, "xyz": xyz_W.tolist(), "pixels": lm_pixels[lm.id]}
+        )
     _dump(gt / "landmarks.json", lms)
     t_, q_ = T_to_pose(T_W_S)
-    _dump(gt / "meta.json", {
-        "generator": "osdar-ar synth",
-        "scene": cfg.scene,
-        "seed": cfg.seed,
-        "frames": len(schedule),
-        "scale": cfg.scale,
-        "cameras_full_resolution": {n: c.to_json() for n, c in cams_full.items()},
-        "stationary": cfg.stationary,
-        "far_origin": cfg.far_origin,
-        "dropped_frames": list(cfg.dropped_frames),
-        "ins_dropped_frames": [int(x) for x in sim.dropped_frames],
-        "ins_profile": cfg.ins_profile,
-        "ins_model": json.loads(
-            InsErrorModel.profile(cfg.ins_profile, seed=cfg.seed, **cfg.ins_overrides)
-            .model_dump_json()
-        ),
-        "speed_mps": traj.speed,
-        "T_world_scene": {"translation": t_.tolist(), "quaternion": q_.tolist()},
-        "pixel_convention": "OpenCV: integer coordinates at pixel centres, full resolution",
-    })
+    _dump(
+        gt / "meta.json",
+        {
+            "generator": "osdar-ar synth",
+            "scene": cfg.scene,
+            "seed": cfg.seed,
+            "frames": len(schedule),
+            "scale": cfg.scale,
+            "cameras_full_resolution": {n: c.to_json() for n, c in cams_full.items()},
+            "stationary": cfg.stationary,
+            "far_origin": cfg.far_origin,
+            "dropped_frames": list(cfg.dropped_frames),
+            "ins_dropped_frames": [int(x) for x in sim.dropped_frames],
+            "ins_profile": cfg.ins_profile,
+            "ins_model": json.loads(
+                InsErrorModel.profile(
+                    cfg.ins_profile, seed=cfg.seed, **cfg.ins_overrides
+                ).model_dump_json()
+            ),
+            "speed_mps": traj.speed,
+            "T_world_scene": {"translation": t_.tolist(), "quaternion": q_.tolist()},
+            "pixel_convention": "OpenCV: integer coordinates at pixel centres, full resolution",
+        },
+    )
 
 
 def _dump(path: Path, obj: Any) -> None:
