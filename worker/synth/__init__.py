@@ -1,0 +1,1 @@
+"""Synthetic digital twin: OSDaR23-layout sequences with ground truth."""
