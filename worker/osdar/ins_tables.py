@@ -21,11 +21,13 @@ class _Table:
     """Column table: every field is an (n,) array of the same length."""
 
     def __len__(self) -> int:
-        return int(len(getattr(self, fields(self)[0].name)))
+        return len(getattr(self, fields(self)[0].name))
 
     def take(self, index: NDArray) -> _Table:
         """Rows selected by an index or boolean mask, as a new table of the same type."""
-        return type(self)(**{f.name: np.asarray(getattr(self, f.name))[index] for f in fields(self)})
+        return type(self)(
+            **{f.name: np.asarray(getattr(self, f.name))[index] for f in fields(self)}
+        )
 
     @classmethod
     def columns(cls) -> list[str]:
