@@ -39,26 +39,46 @@ def _add_synth(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", default="fire_site", help="scene preset (see --list-scenes)")
     p.add_argument("--list-scenes", action="store_true", help="list scene presets and exit")
     p.add_argument("--frames", type=int, default=100)
-    p.add_argument("--scale", type=float, default=0.25,
-                   help="image size relative to the real resolution (1.0 = 2464x1600, 4112x2504)")
+    p.add_argument(
+        "--scale",
+        type=float,
+        default=0.25,
+        help="image size relative to the real resolution (1.0 = 2464x1600, 4112x2504)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cameras", default="rgb_center,rgb_highres_center")
-    p.add_argument("--lidar-density", type=float, default=1.0,
-                   help="fraction of the real lidars' rays (1.0 = OSDaR23 point counts)")
+    p.add_argument(
+        "--lidar-density",
+        type=float,
+        default=1.0,
+        help="fraction of the real lidars' rays (1.0 = OSDaR23 point counts)",
+    )
     p.add_argument("--ins-profile", default="paper", help="INS error profile: paper, good, perfect")
-    p.add_argument("--ins", action="append", default=[], metavar="KEY=VALUE",
-                   help="override an INS error-model field, e.g. --ins latency_s=0.05 "
-                   "(JSON values: --ins 'jumps=[[40,[3,0,0]]]')")
+    p.add_argument(
+        "--ins",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override an INS error-model field, e.g. --ins latency_s=0.05 "
+        "(JSON values: --ins 'jumps=[[40,[3,0,0]]]')",
+    )
     p.add_argument("--speed", type=float, default=None, help="train speed m/s (scene default)")
     p.add_argument("--stationary", action="store_true", help="train stands still")
-    p.add_argument("--far-origin", action="store_true",
-                   help="build and render the scene at UTM magnitudes (hard case 1)")
+    p.add_argument(
+        "--far-origin",
+        action="store_true",
+        help="build and render the scene at UTM magnitudes (hard case 1)",
+    )
     p.add_argument("--first-counter", type=int, default=0)
     p.add_argument("--drop-frames", default="", help="comma-separated frame counters to drop")
     p.add_argument("--pcd-data", default="binary", choices=["ascii", "binary", "binary_compressed"])
-    p.add_argument("--calibration", type=Path, default=None,
-                   help="OSDaR23 labels file with the real calibration "
-                   "(default: ../shared/data/osdar23/1_calibration_1.1_labels.json)")
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        default=None,
+        help="OSDaR23 labels file with the real calibration "
+        "(default: ../shared/data/osdar23/1_calibration_1.1_labels.json)",
+    )
     p.add_argument("--force", action="store_true", help="replace OUT if it exists")
     p.set_defaults(func=cmd_synth)
 
@@ -80,7 +100,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from worker.synth.generator import SynthConfig, generate
 
     if args.list_scenes:
-        from worker.synth.scenes import SCENES
+        from worker.synth.scenes import SCENE_NAMES as SCENES
 
         for name in SCENES:
             print(name)  # noqa: T201 - CLI output
@@ -95,12 +115,20 @@ def cmd_synth(args: argparse.Namespace) -> int:
     drops = tuple(int(x) for x in args.drop_frames.split(",") if x.strip())
     try:
         cfg = SynthConfig(
-            scene=args.scene, frames=args.frames, scale=args.scale, seed=args.seed,
+            scene=args.scene,
+            frames=args.frames,
+            scale=args.scale,
+            seed=args.seed,
             cameras=tuple(c.strip() for c in args.cameras.split(",") if c.strip()),
-            lidar_density=args.lidar_density, ins_profile=args.ins_profile,
-            ins_overrides=_parse_overrides(args.ins), speed_mps=args.speed,
-            stationary=args.stationary, far_origin=args.far_origin,
-            first_counter=args.first_counter, dropped_frames=drops, pcd_data=args.pcd_data,
+            lidar_density=args.lidar_density,
+            ins_profile=args.ins_profile,
+            ins_overrides=_parse_overrides(args.ins),
+            speed_mps=args.speed,
+            stationary=args.stationary,
+            far_origin=args.far_origin,
+            first_counter=args.first_counter,
+            dropped_frames=drops,
+            pcd_data=args.pcd_data,
             calibration=args.calibration,
         )
     except ValueError as exc:
@@ -168,8 +196,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     try:
         result = run_demo(
-            args.workdir, scene=args.scene, frames=args.frames, scale=args.scale,
-            lidar_density=args.lidar_density, progress=progress,
+            args.workdir,
+            scene=args.scene,
+            frames=args.frames,
+            scale=args.scale,
+            lidar_density=args.lidar_density,
+            progress=progress,
         )
     finally:
         bar.close()
@@ -196,7 +228,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
-        level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING,
+        level=logging.DEBUG
+        if args.verbose > 1
+        else logging.INFO
+        if args.verbose
+        else logging.WARNING,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     from worker.osdar.errors import SequenceError

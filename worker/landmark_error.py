@@ -35,8 +35,13 @@ class LandmarkErrors:
 
         rm, rs = ms(self.rpe)
         jm, js = ms(self.jitter)
-        return {"rpe_mean": rm, "rpe_std": rs, "jitter_mean": jm, "jitter_std": js,
-                "observations": int(len(self.rpe))}
+        return {
+            "rpe_mean": rm,
+            "rpe_std": rs,
+            "jitter_mean": jm,
+            "jitter_std": js,
+            "observations": len(self.rpe),
+        }
 
 
 def landmark_errors(
@@ -77,6 +82,8 @@ def landmark_errors(
         consecutive = (np.diff(f_arr) == 1) & good[1:] & good[:-1]
         jit += np.abs(np.diff(e))[consecutive].tolist()
     return LandmarkErrors(
-        np.asarray(frames, dtype=np.int64), np.asarray(lms, dtype=np.int64),
-        np.asarray(rpes, dtype=np.float64), np.asarray(jit, dtype=np.float64),
+        np.asarray(frames, dtype=np.int64),
+        np.asarray(lms, dtype=np.int64),
+        np.asarray(rpes, dtype=np.float64),
+        np.asarray(jit, dtype=np.float64),
     )

@@ -328,9 +328,13 @@ def generate(
 
     tic = time.perf_counter()
     camsim = CameraSimulator(scene, cams, seed=cfg.seed)
-    sensors = default_sensors(density=cfg.lidar_density)
+    sensors = default_sensors()
     lidar = LidarSimulator(
-        scene.mesh, sensors, origin=traj(np.array([t0]))[0, :3, 3], seed=cfg.seed
+        scene.mesh,
+        sensors,
+        origin=traj(np.array([t0]))[0, :3, 3],
+        seed=cfg.seed,
+        density=cfg.lidar_density,
     )
     vis = LandmarkVisibility(scene.mesh, origin=traj(np.array([t0]))[0, :3, 3])
     stages["setup"] = time.perf_counter() - tic
@@ -557,7 +561,7 @@ def _dump(path: Path, obj: Any) -> None:
 
 
 def iter_scene_names() -> Iterator[str]:
-    from worker.synth.scenes import SCENES
+    from worker.synth.scenes import SCENE_NAMES as SCENES
 
     yield from SCENES
 
