@@ -518,7 +518,7 @@ def _write_ground_truth(
                 "ego": tr is scene.ego,
                 "s": s.tolist(),
                 "xyz": pts.tolist(),
-                "cant_rad": tr.roll(s).tolist(),
+                "roll_rad": tr.roll(s).tolist(),
             }
         )
     _dump(gt / "centrelines.json", cl)

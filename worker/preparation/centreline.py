@@ -1,0 +1,185 @@
+"""A track centreline: a smooth 3D curve with arc length, tangent and cant (roll).
+
+Conventions (same as the synthetic generator's ``Track``):
+- the centreline runs at rail-head mid-height, between the two rail-head centres;
+- ``s`` is the 3D arc length along it (m), from 0 at its first point;
+- ``roll`` (rad) is the rotation of the rail plane about the tangent, right-handed about
+  the forward axis: positive roll lowers the right rail. A cant c (m, right rail higher) is
+  roll = -asin(c / RAIL_HEAD_SPACING);
+- ``frame_at(s)`` is the pose T_world_base of a vehicle base frame sitting on the
+  centreline: x along the tangent, y left, z normal to the canted rail plane.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.interpolate import CubicSpline
+
+F64 = NDArray[np.float64]
+
+RAIL_HEAD_SPACING = 1.500  # m between rail-head centres (1.435 m gauge + 2 x 0.0325)
+_MIN_SEGMENT = 1e-6
+
+
+@dataclass(frozen=True)
+class Projection:
+    """Points projected onto a centreline: arc length, signed lateral offset (left +,
+    horizontal), height above the centreline, and horizontal distance (all (m,))."""
+
+    s: F64
+    lateral: F64
+    vertical: F64
+    distance: F64
+
+
+class Centreline:
+    """Cubic-spline centreline through an ordered polyline.
+
+    Parameters
+    ----------
+    points : (n, 3) float64 world points in driving order, n >= 2 (duplicates dropped).
+    roll : (n,) rad or None (zero).
+    track_id : identifier of the track.
+    ego : whether this is the track the train runs on.
+    """
+
+    def __init__(
+        self,
+        points: ArrayLike,
+        roll: ArrayLike | None = None,
+        track_id: str = "0",
+        ego: bool = False,
+    ) -> None:
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        r = np.zeros(len(p)) if roll is None else np.asarray(roll, dtype=np.float64).reshape(-1)
+        if len(r) != len(p):
+            raise ValueError(f"roll must have {len(p)} entries, got {len(r)}")
+        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(r))):
+            raise ValueError("centreline points and roll must be finite")
+        seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+        keep = np.concatenate([[True], seg > _MIN_SEGMENT])
+        p, r = p[keep], r[keep]
+        if len(p) < 2:
+            raise ValueError("a centreline needs at least 2 distinct points")
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+        bc = "natural" if len(p) > 2 else "not-a-knot"
+        self._xyz = CubicSpline(s, p, axis=0, bc_type=bc)
+        self._roll = CubicSpline(s, r, bc_type=bc) if len(p) > 2 else None
+        self._roll_lin = (s, r)
+        self.knots_s: F64 = s
+        self.knots_xyz: F64 = p
+        self.knots_roll: F64 = r
+        self.track_id = str(track_id)
+        self.ego = bool(ego)
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def length(self) -> float:
+        return float(self.knots_s[-1])
+
+    def _clip(self, s: ArrayLike) -> F64:
+        return np.clip(np.atleast_1d(np.asarray(s, dtype=np.float64)), 0.0, self.length)
+
+    def point(self, s: ArrayLike) -> F64:
+        """(m,) arc lengths -> (m, 3) points (clamped to the curve's ends)."""
+        return self._xyz(self._clip(s))
+
+    def tangent(self, s: ArrayLike) -> F64:
+        """(m,) -> (m, 3) unit tangents."""
+        d = self._xyz(self._clip(s), 1)
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def roll(self, s: ArrayLike) -> F64:
+        """(m,) -> (m,) roll of the rail plane (rad)."""
+        s = self._clip(s)
+        if self._roll is None:
+            return np.interp(s, *self._roll_lin)
+        return self._roll(s)
+
+    def curvature(self, s: ArrayLike) -> F64:
+        """(m,) -> (m,) signed horizontal curvature (1/m, left turn positive)."""
+        s = self._clip(s)
+        d1 = self._xyz(s, 1)
+        d2 = self._xyz(s, 2)
+        num = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+        return num / np.maximum(np.hypot(d1[:, 0], d1[:, 1]) ** 3, 1e-12)
+
+    def frame_at(self, s: ArrayLike) -> F64:
+        """(m,) -> (m, 4, 4) T_world_base of a vehicle on the centreline (canted)."""
+        s = self._clip(s)
+        x = self.tangent(s)
+        up = np.array([0.0, 0.0, 1.0])
+        y0 = np.cross(up, x)
+        y0 /= np.linalg.norm(y0, axis=1, keepdims=True)
+        z0 = np.cross(x, y0)
+        a = self.roll(s)[:, None]
+        # rotate (y0, z0) about x by roll (right-handed)
+        y = np.cos(a) * y0 + np.sin(a) * z0
+        z = -np.sin(a) * y0 + np.cos(a) * z0
+        T = np.zeros((len(s), 4, 4))
+        T[:, :3, 0], T[:, :3, 1], T[:, :3, 2] = x, y, z
+        T[:, :3, 3] = self.point(s)
+        T[:, 3, 3] = 1.0
+        return T
+
+    def project(self, p_world: ArrayLike, step: float = 0.5) -> Projection:
+        """Nearest point on the curve for each of (m, 3) points (horizontal metric).
+
+        Dense sampling every ``step`` metres, then Newton refinement on the horizontal
+        distance; ``s`` is clamped to [0, length].
+        """
+        p = np.asarray(p_world, dtype=np.float64).reshape(-1, 3)
+        ss = np.linspace(0.0, self.length, max(2, int(np.ceil(self.length / step)) + 1))
+        pts = self.point(ss)
+        from scipy.spatial import cKDTree
+
+        _, idx = cKDTree(pts[:, :2]).query(p[:, :2])
+        s = ss[idx]
+        for _ in range(8):
+            c = self._xyz(s)
+            d1 = self._xyz(s, 1)
+            d2 = self._xyz(s, 2)
+            diff = c[:, :2] - p[:, :2]
+            g = (diff * d1[:, :2]).sum(1)
+            h = (d1[:, :2] ** 2).sum(1) + (diff * d2[:, :2]).sum(1)
+            step_s = np.where(h > 1e-12, g / h, 0.0)
+            s = np.clip(s - step_s, 0.0, self.length)
+            if np.all(np.abs(step_s) < 1e-9):
+                break
+        c = self.point(s)
+        t = self.tangent(s)
+        left = np.stack([-t[:, 1], t[:, 0]], axis=1)
+        left /= np.linalg.norm(left, axis=1, keepdims=True)
+        d = p[:, :2] - c[:, :2]
+        return Projection(
+            s=s,
+            lateral=(d * left).sum(1),
+            vertical=p[:, 2] - c[:, 2],
+            distance=np.linalg.norm(d, axis=1),
+        )
+
+    def resampled(self, step: float = 1.0) -> F64:
+        """Arc lengths every ``step`` m including both ends, (k,)."""
+        s = np.arange(0.0, self.length, step)
+        return np.append(s, self.length)
+
+    # ------------------------------------------------------------------ I/O
+    def to_json(self, step: float = 1.0) -> dict[str, Any]:
+        s = self.resampled(step)
+        return {
+            "id": self.track_id,
+            "ego": self.ego,
+            "s": s.tolist(),
+            "xyz": self.point(s).tolist(),
+            "roll_rad": self.roll(s).tolist(),
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Centreline:
+        """From ``to_json`` output or a synthetic ``ground_truth/centrelines.json`` entry."""
+        roll = d.get("roll_rad", d.get("cant_rad"))
+        return cls(d["xyz"], roll, track_id=str(d.get("id", "0")), ego=bool(d.get("ego", False)))

@@ -1,0 +1,90 @@
+"""What every localization strategy takes and gives.
+
+A strategy maps a sequence (and what earlier preparation found) to T_world_base at every
+frame's lidar timestamp, in the sequence's world frame (ENU at the first INS record), plus
+a health report. It never fails on degraded input and never returns NaN: it falls back
+and says so in ``Health``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from worker.geodesy import WorldFrame
+from worker.osdar.ins_tables import InsPva
+from worker.osdar.sequence import Sequence
+from worker.poses import PoseTrack
+from worker.preparation.centreline import Centreline
+
+
+@dataclass
+class Health:
+    """A strategy's own report: problems seen (degenerate ICP, GNSS jumps, no rails,
+    standstill, ...), the consistency measures it computed (used by ``auto``), and which
+    fallback it took, if any."""
+
+    warnings: list[str] = field(default_factory=list)
+    metrics: dict[str, float] = field(default_factory=dict)
+    fallback: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return not self.warnings and self.fallback is None
+
+    def warn(self, message: str) -> None:
+        import logging
+
+        logging.getLogger("worker.preparation.localization").warning(message)
+        self.warnings.append(message)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "ok": self.ok,
+            "warnings": list(self.warnings),
+            "metrics": {k: float(v) for k, v in self.metrics.items()},
+            "fallback": self.fallback,
+        }
+
+
+@dataclass
+class LocalizationInput:
+    """Everything a strategy may use. ``ego`` is the ego centreline when rails were found
+    (None otherwise); ``frame_times`` maps frame counter -> lidar timestamp (s)."""
+
+    sequence: Sequence
+    world: WorldFrame
+    ins: InsPva
+    ins_track: PoseTrack
+    frame_times: dict[int, float]
+    ego: Centreline | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def frames(self) -> list[int]:
+        return sorted(self.frame_times)
+
+    @property
+    def times(self) -> np.ndarray:
+        return np.array([self.frame_times[f] for f in self.frames])
+
+
+@dataclass
+class LocalizationResult:
+    """Poses T_world_base at each frame's lidar timestamp (``track.frame_idx`` set)."""
+
+    strategy: str
+    track: PoseTrack
+    health: Health
+    seconds: float
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+class Strategy(Protocol):
+    """A localization strategy: ``name`` and ``run(inp) -> LocalizationResult``."""
+
+    name: str
+
+    def run(self, inp: LocalizationInput) -> LocalizationResult: ...
