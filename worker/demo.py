@@ -59,6 +59,7 @@ def evaluate_raw_ins(seq_dir: Path) -> dict[str, Any]:
     True pose errors (m, deg) at the lidar timestamps and landmark reprojection error and
     jitter per camera at full resolution (px).
     """
+    seq_dir = Path(seq_dir)
     seq = Sequence.open(seq_dir)
     ins = seq.ins()
     world = world_frame_from_ins(ins)
