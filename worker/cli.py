@@ -210,6 +210,177 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- prepare
+def _add_prepare(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "prepare",
+        help="prepare a sequence: poses, registered cloud, tracks, scene elements",
+        description="Run pipeline step 2 on a sequence and write the artifact to OUT: "
+        "poses.csv, world.json, centrelines.json, planes.json, poles.json, "
+        "calibration_point.json, summary.json, cloud.npz. The artifact is cached by the "
+        "sequence's content, the config and the clicks, and reused. When SEQ/ground_truth "
+        "exists, the true pose errors are printed too.",
+    )
+    p.add_argument("sequence", type=Path)
+    p.add_argument("--strategy", default="auto", help="ins, odometry, rails, fused or auto")
+    p.add_argument("--out", type=Path, required=True, help="artifact folder (replaced)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--voxel-size", type=float, default=None, help="m, registered cloud voxel")
+    p.add_argument(
+        "--clicks", type=Path, default=None, help="clicked landmark pixels (CSV or JSON)"
+    )
+    p.add_argument(
+        "--config", type=Path, default=None, help="JSON file with PrepareConfig sections"
+    )
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="cache of prepared artifacts (default $OSDAR_AR_CACHE_DIR or "
+        "~/.cache/osdar-ar/prepared)",
+    )
+    p.set_defaults(func=cmd_prepare)
+
+
+def _prepare_config(args: argparse.Namespace) -> Any:
+    from pydantic import ValidationError
+
+    from worker.preparation.config import PrepareConfig
+
+    data: dict[str, Any] = {}
+    if args.config is not None:
+        try:
+            data = json.loads(args.config.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise CliError(f"--config {args.config}: {exc}") from exc
+    data["strategy"] = args.strategy
+    if args.voxel_size is not None:
+        data["registration"] = {**data.get("registration", {}), "voxel_size": args.voxel_size}
+    try:
+        return PrepareConfig.model_validate(data)
+    except ValidationError as exc:
+        msgs = "; ".join(
+            f"{'.'.join(str(x) for x in e['loc']) or 'config'}: {e['msg']}" for e in exc.errors()
+        )
+        raise CliError(msgs) from exc
+
+
+def _pose_error_rows(prepared: Any, seq_folder: Path) -> list[dict[str, Any]]:
+    """True pose errors (m, deg) per track against SEQ/ground_truth/poses.csv."""
+    import numpy as np
+
+    from worker.geodesy import WorldFrame
+    from worker.poses import PoseTrack, reexpress
+
+    gt_dir = seq_folder / "ground_truth"
+    gt = PoseTrack.from_csv(gt_dir / "poses.csv")
+    world_file = gt_dir / "world.json"
+    if world_file.is_file():
+        gt = reexpress(gt, WorldFrame.from_json(json.loads(world_file.read_text())), prepared.world)
+    rows = []
+    tracks = {f"{prepared.strategy} (chosen)": prepared.track, **prepared.references}
+    for name, track in tracks.items():
+        try:
+            dt, dr = track.relative_errors(gt, max_extrapolation_s=0.05)
+        except ValueError as exc:
+            log.warning("pose errors of %s: %s", name, exc)
+            continue
+        rows.append(
+            {
+                "track": name,
+                "frames": len(dt),
+                "translation_mean_m": float(np.mean(dt)),
+                "translation_max_m": float(np.max(dt)),
+                "rotation_mean_deg": float(np.mean(dr)),
+                "rotation_max_deg": float(np.max(dr)),
+            }
+        )
+    return rows
+
+
+def cmd_prepare(args: argparse.Namespace) -> int:
+    import os
+
+    from worker.preparation.artifact import copy_artifact, write_artifact
+    from worker.preparation.calibration_point import ClicksError
+    from worker.preparation.prepare import STAGES, PreparationError, prepare
+
+    config = _prepare_config(args)
+    cache_dir = args.cache_dir or Path(
+        os.environ.get("OSDAR_AR_CACHE_DIR", Path.home() / ".cache/osdar-ar/prepared")
+    )
+    bar = _progress_bar(len(STAGES), f"prepare {args.sequence.name}")
+    bar.unit = "stage"
+
+    def progress(stage: str, done: int, total: int) -> None:
+        bar.set_postfix_str(stage)
+        bar.update(done - bar.n)
+
+    try:
+        prepared = prepare(
+            args.sequence, config, clicks=args.clicks, cache_dir=cache_dir, progress=progress
+        )
+        bar.update(bar.total - bar.n)
+    except (PreparationError, ClicksError) as exc:
+        raise CliError(str(exc)) from exc
+    finally:
+        bar.close()
+    if prepared.folder is not None:
+        copy_artifact(prepared.folder, args.out)
+    else:  # pragma: no cover - prepare() always writes under a cache folder
+        write_artifact(prepared, args.out)
+    s = prepared.summary
+    errors = []
+    if (args.sequence / "ground_truth" / "poses.csv").is_file():
+        errors = _pose_error_rows(prepared, args.sequence)
+    if args.json:
+        out = {**s, "out": str(args.out), "true_pose_errors": errors or None}
+        print(json.dumps(out, indent=1))  # noqa: T201 - CLI output
+        return 0
+    how = "reused" if s.get("reused") else f"prepared in {s.get('total_seconds', 0.0):.1f} s"
+    print(  # noqa: T201 - CLI output
+        f"{s['sequence']['name']}: {how}, strategy {s['strategy']} "
+        f"(requested {s['requested_strategy']}), key {prepared.key[:16]} -> {args.out}"
+    )
+    timings = s.get("timings", {})
+    if timings and not s.get("reused"):
+        print("  stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items()))  # noqa: T201
+    health = s.get("health", {})
+    print(  # noqa: T201 - CLI output
+        f"  health: {'ok' if health.get('ok') else 'degraded'}"
+        + (f", fallback {health['fallback']}" if health.get("fallback") else "")
+    )
+    for w in s.get("warnings", []):
+        print(f"  warning: {w}")  # noqa: T201 - CLI output
+    sc, cal = s.get("scene", {}), s.get("calibration") or {}
+    print(  # noqa: T201 - CLI output
+        f"  cloud {s['cloud']['points']} points, {s['tracks']['count']} track(s) "
+        f"(ego {'found' if s['tracks']['ego_found'] else 'NOT found'}), "
+        f"{sc.get('planes', 0)} planes ({sc.get('platforms', 0)} platforms), "
+        f"{sc.get('poles', 0)} poles"
+    )
+    if cal:
+        res = cal.get("residual_mean_px")
+        print(  # noqa: T201 - CLI output
+            f"  calibration point ({cal['mode']}): {cal['landmark']}, "
+            + ("not found" if not cal["found"] else "found")
+            + ("" if res is None else f", mean residual {res:.2f} px over {cal['views']} views")
+        )
+    if errors:
+        print("  true pose errors (ground_truth/poses.csv):")  # noqa: T201 - CLI output
+        print(  # noqa: T201 - CLI output
+            f"  {'track':<22} {'frames':>6} {'t mean m':>9} {'t max m':>9} "
+            f"{'r mean deg':>10} {'r max deg':>10}"
+        )
+        for r in errors:
+            print(  # noqa: T201 - CLI output
+                f"  {r['track']:<22} {r['frames']:>6d} {r['translation_mean_m']:>9.3f} "
+                f"{r['translation_max_m']:>9.3f} {r['rotation_mean_deg']:>10.3f} "
+                f"{r['rotation_max_deg']:>10.3f}"
+            )
+    return 0
+
+
 # ---------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -221,6 +392,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_synth(sub)
     _add_info(sub)
     _add_demo(sub)
+    _add_prepare(sub)
     return parser
 
 

@@ -1,0 +1,89 @@
+"""Preparation time against KISS-ICP alone on the same clouds (BENCHMARK.md).
+
+Per run, in one process: (a) KISS-ICP alone - the same memoised run the preparation makes
+(read every cloud, register it), on a fresh input; (b) the whole preparation (every stage,
+artifact written to a temporary folder). Prints per-run times and the ratio (b)/(a), then
+medians and per-stage medians. Target: ratio <= 1.5.
+
+    .venv/bin/python scripts/bench_prepare.py /tmp/seqs/fire_site --runs 3 --strategy auto
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from worker.osdar.sequence import Sequence
+from worker.preparation.artifact import write_artifact
+from worker.preparation.config import PrepareConfig
+from worker.preparation.localization.common import make_input
+from worker.preparation.localization.odometry import run_kiss_icp
+from worker.preparation.prepare import run_preparation
+
+TARGET_RATIO = 1.5
+
+
+def kiss_alone(seq: Sequence, config: PrepareConfig) -> float:
+    """Wall time of one KISS-ICP run over the sequence's clouds (reading included)."""
+    inp = make_input(seq, options=dict(config.localization.options))
+    t0 = time.perf_counter()
+    run_kiss_icp(inp)
+    return time.perf_counter() - t0
+
+
+def prepare_once(seq: Sequence, config: PrepareConfig) -> tuple[float, dict[str, float]]:
+    t0 = time.perf_counter()
+    prepared = run_preparation(seq, config)
+    with tempfile.TemporaryDirectory() as tmp:
+        t1 = time.perf_counter()
+        write_artifact(prepared, Path(tmp) / "artifact")
+        stages = dict(prepared.summary["timings"], artifact=time.perf_counter() - t1)
+    return time.perf_counter() - t0, stages
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("sequence", type=Path, nargs="?", default=Path("/tmp/seqs/fire_site"))
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--strategy", default="auto")
+    ap.add_argument("--voxel-size", type=float, default=None)
+    ap.add_argument("--json", type=Path, default=None, help="also write the results here")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    reg = {} if args.voxel_size is None else {"voxel_size": args.voxel_size}
+    config = PrepareConfig(strategy=args.strategy).with_overrides(registration=reg)
+    seq = Sequence.open(args.sequence)
+    rows = []
+    for k in range(args.runs):
+        t_kiss = kiss_alone(seq, config)
+        t_prep, stages = prepare_once(seq, config)
+        rows.append({"kiss": t_kiss, "prepare": t_prep, "ratio": t_prep / t_kiss, **stages})
+        print(  # noqa: T201 - script output
+            f"run {k + 1}: KISS-ICP alone {t_kiss:.1f} s, preparation {t_prep:.1f} s, "
+            f"ratio {t_prep / t_kiss:.2f}"
+        )
+    med = {key: statistics.median(r[key] for r in rows) for key in rows[0]}
+    print(  # noqa: T201 - script output
+        f"\n{seq.name}: {len(seq.frame_indices)} frames, strategy {args.strategy}, voxel "
+        f"{config.registration.voxel_size} m, median of {args.runs} run(s)\n"
+        f"  KISS-ICP alone {med['kiss']:.1f} s, preparation {med['prepare']:.1f} s, "
+        f"ratio {med['ratio']:.2f} (target <= {TARGET_RATIO})"
+    )
+    for key, v in med.items():
+        if key not in ("kiss", "prepare", "ratio"):
+            print(f"    {key:<18} {v:7.2f} s")  # noqa: T201 - script output
+    if args.json:
+        args.json.write_text(json.dumps({"runs": rows, "median": med}, indent=1))
+    return 0 if med["ratio"] <= TARGET_RATIO else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,176 @@
+"""The calibration point: clicked landmark -> nearest-projection cloud point; pole tops."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from renderer.camera import load_cameras
+from tests.synth_fixtures import landmarks, synth_sequence, true_poses
+from worker.osdar.sequence import Sequence
+from worker.preparation.calibration_point import (
+    OSDAR23_FULL_RESOLUTION,
+    Clicks,
+    ClicksError,
+    calibration_point_from_clicks,
+    camera_at_resolution,
+    propose_pole_tops,
+)
+from worker.preparation.config import CalibrationConfig
+from worker.preparation.registration import register_clouds
+from worker.preparation.scene_elements import Pole
+
+VOXEL = 0.1
+
+
+# ---------------------------------------------------------------------------- clicks files
+def test_csv_and_json_formats_agree(tmp_path: Path) -> None:
+    csv_path = tmp_path / "pole_a.csv"
+    csv_path.write_text(
+        "camera,frame_idx,u,v\nrgb_center,3,100.5,200.25\nrgb_center,4,,\n"
+        "rgb_highres_center,3,1000,2000\n"
+    )
+    js = tmp_path / "pole_a.json"
+    js.write_text(
+        json.dumps(
+            {
+                "landmark": "pole_a",
+                "clicks": {
+                    "rgb_center": {"3": [100.5, 200.25], "4": None},
+                    "rgb_highres_center": {"3": [1000, 2000]},
+                },
+            }
+        )
+    )
+    a, b = Clicks.load(csv_path), Clicks.load(js)
+    assert a.to_json() == b.to_json()
+    assert a.digest() == b.digest()
+    assert len(a) == 2 and 4 not in a.uv["rgb_center"]  # an empty row is a missing frame
+
+
+def test_explicit_resolution_and_bad_files(tmp_path: Path) -> None:
+    p = tmp_path / "c.csv"
+    p.write_text("camera,frame_idx,u,v,width,height\nrgb_center,0,10,20,616,400\n")
+    assert Clicks.load(p).resolution == {"rgb_center": (616, 400)}
+    bad = tmp_path / "bad.csv"
+    bad.write_text("cam,frame,u,v\nx,0,1,2\n")
+    with pytest.raises(ClicksError, match="camera,frame_idx,u,v"):
+        Clicks.load(bad)
+    with pytest.raises(ClicksError, match="not found"):
+        Clicks.load(tmp_path / "missing.json")
+    j = tmp_path / "bad.json"
+    j.write_text('{"landmark": "x", "clicks": {"rgb_center": {"zero": [1, 2]}}}')
+    with pytest.raises(ClicksError, match="not an integer"):
+        Clicks.load(j)
+
+
+# ---------------------------------------------------------------------------- on a sequence
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    folder = synth_sequence(tmp_path_factory.getbasetemp())
+    seq = Sequence.open(folder)
+    gt = true_poses(folder)
+    cloud = register_clouds(seq, gt, voxel_size=VOXEL, max_range=80.0)
+    cams = load_cameras(seq.labels.raw, seq.cameras)
+    times = {c: dict(zip(seq.frame_indices, seq.timestamps(c).tolist(), strict=True)) for c in cams}
+    return {"folder": folder, "seq": seq, "gt": gt, "cloud": cloud, "cams": cams, "times": times}
+
+
+def _measured_pole_tops(scene: dict, min_clicks: int = 8) -> list[dict]:
+    """pole_top landmarks the lidar measured (a cloud point within 0.2 m) with many clicks."""
+    tree = cKDTree(scene["cloud"].xyz)
+    out = []
+    for lm in landmarks(scene["folder"], "pole_top"):
+        n = sum(uv is not None for px in lm["pixels"].values() for uv in px.values())
+        d, _ = tree.query(lm["xyz"])
+        if n >= min_clicks and d < 0.2:
+            out.append(lm)
+    return out
+
+
+def _clicks(lm: dict) -> Clicks:
+    uv = {
+        cam: {int(f): np.asarray(p, dtype=np.float64) for f, p in px.items() if p is not None}
+        for cam, px in lm["pixels"].items()
+    }
+    return Clicks(lm["id"], {c: v for c, v in uv.items() if v})
+
+
+def test_true_clicks_and_true_poses_give_the_landmark(scene: dict) -> None:
+    lms = _measured_pole_tops(scene)
+    assert lms, "the test sequence must show at least one measured pole top"
+    for lm in lms:
+        cp = calibration_point_from_clicks(
+            scene["cloud"].xyz, scene["gt"], scene["cams"], scene["times"], _clicks(lm),
+            CalibrationConfig(),
+        )  # fmt: skip
+        assert cp.xyz is not None, cp.warnings
+        err = np.linalg.norm(cp.xyz - np.asarray(lm["xyz"]))
+        # the nearest measured point sits on the pole's surface (radius 0.12 m) near its top
+        assert err < 2.0 * VOXEL + 0.12, (lm["id"], err)
+        assert cp.point_index is not None
+        assert np.allclose(scene["cloud"].xyz[cp.point_index], cp.xyz)
+        s = cp.summary()
+        assert s["inliers"] == s["views"] == len(_clicks(lm))
+        assert s["residual_mean_px"] < 15.0  # full-resolution px
+        assert cp.resolution["rgb_center"] == OSDAR23_FULL_RESOLUTION["rgb_center"]
+
+
+def test_frames_without_clicks_are_skipped(scene: dict) -> None:
+    lm = _measured_pole_tops(scene)[0]
+    clicks = _clicks(lm)
+    cam = next(iter(clicks.uv))
+    frames = sorted(clicks.uv[cam])
+    kept = {f: clicks.uv[cam][f] for f in frames[::3]}  # most frames unclicked
+    kept[9999] = np.array([100.0, 100.0])  # a frame the sequence lacks
+    cp = calibration_point_from_clicks(
+        scene["cloud"].xyz, scene["gt"], scene["cams"], scene["times"],
+        Clicks(lm["id"], {cam: kept}), CalibrationConfig(),
+    )  # fmt: skip
+    assert len(cp.observations) == len(frames[::3])
+    assert cp.skipped == [{"camera": cam, "frame_idx": 9999, "reason": "no such frame"}]
+    assert any("9999" in w for w in cp.warnings)
+    assert np.linalg.norm(cp.xyz - np.asarray(lm["xyz"])) < 2.0 * VOXEL + 0.12
+
+
+def test_unknown_camera_is_a_clear_error(scene: dict) -> None:
+    clicks = Clicks("x", {"rgb_left": {0: np.array([1.0, 2.0])}})
+    with pytest.raises(ClicksError, match=r"rgb_left.*lacks"):
+        calibration_point_from_clicks(
+            scene["cloud"].xyz, scene["gt"], scene["cams"], scene["times"], clicks,
+            CalibrationConfig(),
+        )  # fmt: skip
+
+
+def test_camera_at_resolution_round_trip(scene: dict) -> None:
+    cam = scene["cams"]["rgb_center"]
+    full = camera_at_resolution(cam, 2464, 1600)
+    back = camera_at_resolution(full, cam.width, cam.height)
+    assert np.allclose(back.K, cam.K, atol=1e-9)
+    p = np.array([[20.0, 1.0, 2.0]])
+    uv_s, _ = cam.project(p)
+    uv_f, _ = full.project(p)
+    sx, sy = 2464 / cam.width, 1600 / cam.height
+    assert np.allclose((uv_s + 0.5) * [sx, sy] - 0.5, uv_f, atol=1e-6)
+
+
+def test_auto_mode_proposes_the_most_visible_pole_top(scene: dict) -> None:
+    lms = landmarks(scene["folder"], "pole_top")
+    poles = [
+        Pole(lm["id"], np.asarray(lm["xyz"][:2]), 0.0, lm["xyz"][2], 0.15,
+             np.asarray(lm["xyz"]), 100, 0.0, 0.0)
+        for lm in lms
+    ]  # fmt: skip
+    cp = propose_pole_tops(poles, scene["gt"], scene["cams"], scene["times"], CalibrationConfig())
+    assert cp.mode == "auto" and cp.xyz is not None
+    views = [p["views"] for p in cp.proposals]
+    assert views == sorted(views, reverse=True) and views[0] > 0
+    best = next(lm for lm in lms if lm["id"] == cp.proposals[0]["pole"])
+    n_true = sum(uv is not None for px in best["pixels"].values() for uv in px.values())
+    assert abs(views[0] - n_true) <= 0.2 * n_true + 2  # occlusion is not modelled
+    assert np.allclose(cp.xyz, best["xyz"])
+    assert cp.landmark == f"{best['id']}_top"

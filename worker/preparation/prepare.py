@@ -1,0 +1,423 @@
+"""Pipeline step 2, preparation: one sequence -> poses, registered cloud, tracks, scene.
+
+The recipe (:func:`run_preparation`), one line per stage:
+
+1. open the sequence, check the clicks against its cameras;
+2. INS poses (world frame = ENU at the first INS record, nominal INS-to-lidar assumption);
+3. lidar odometry: ONE KISS-ICP run, memoised for every strategy that needs it;
+4. pre-registration: every ``pre_frame_step``-th cloud with the odometry (or INS) poses,
+   coarse voxels - enough to find the rails;
+5. tracks on it: the ego centreline the rail-based strategies need;
+6. the localization strategy -> T_world_base at every frame's lidar timestamp;
+7. final registration of all clouds with the strategy's poses;
+8. tracks again on the final cloud (the centrelines of the artifact);
+9. scene elements: ground / platform planes, platform edges, poles;
+10. the calibration point from the clicks (or proposed pole tops);
+11. the artifact (written by :func:`prepare` when it is given a cache folder).
+
+:func:`prepare` adds the cache: the artifact is keyed by the sequence's content, the
+config and the clicks (:func:`~worker.preparation.artifact.cache_key`), and a per-key lock
+makes concurrent preparations of the same key wait and reuse one result.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import math
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from renderer.camera import load_cameras
+from worker.osdar.sequence import Sequence
+from worker.poses import PoseTrack
+from worker.preparation.artifact import (
+    ARTIFACT_VERSION,
+    PreparedSequence,
+    artifact_key,
+    cache_key,
+    cached_folder,
+    key_lock,
+    read_artifact,
+    write_artifact,
+)
+from worker.preparation.calibration_point import (
+    CalibrationPoint,
+    Clicks,
+    ClicksError,
+    calibration_point_from_clicks,
+    propose_pole_tops,
+)
+from worker.preparation.config import PrepareConfig
+from worker.preparation.registration import RegisteredCloud, register_clouds
+from worker.preparation.scene_elements import find_scene_elements, reference_centreline
+
+log = logging.getLogger(__name__)
+
+#: ``progress(stage, done, total)``: called when a stage starts (done = stages finished).
+Progress = Callable[[str, int, int], None]
+
+STAGES = (
+    "open",
+    "ins",
+    "odometry",
+    "pre_registration",
+    "pre_tracks",
+    "strategy",
+    "registration",
+    "tracks",
+    "scene_elements",
+    "calibration_point",
+)
+
+
+class PreparationError(Exception):
+    """A sequence or setting preparation cannot use (the message says which and why)."""
+
+
+class _Stages:
+    """Times the stages and reports progress."""
+
+    def __init__(self, progress: Progress | None) -> None:
+        self.progress = progress
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        if self.progress is not None:
+            self.progress(name, len(self.seconds), len(STAGES))
+        log.info("preparation: %s", name)
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = time.perf_counter() - t0
+
+
+def _load_clicks(clicks: Clicks | str | Path | None) -> Clicks | None:
+    if clicks is None or isinstance(clicks, Clicks):
+        return clicks
+    return Clicks.load(clicks)
+
+
+def _open(sequence: Sequence | str | Path) -> Sequence:
+    return sequence if isinstance(sequence, Sequence) else Sequence.open(sequence)
+
+
+# ---------------------------------------------------------------------------- the cache
+def prepare(
+    sequence: Sequence | str | Path,
+    config: PrepareConfig | None = None,
+    *,
+    clicks: Clicks | str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    progress: Progress | None = None,
+) -> PreparedSequence:
+    """Prepare a sequence, reusing the cached artifact when there is one.
+
+    Parameters
+    ----------
+    sequence : the sequence folder (or an opened Sequence).
+    config : the preparation config (defaults: :class:`PrepareConfig`).
+    clicks : a clicks file (CSV / JSON, see :mod:`.calibration_point`) or Clicks.
+    cache_dir : folder of cached artifacts (``<cache_dir>/<key>/``); None computes without
+        writing anything.
+    progress : ``progress(stage, done, total)``.
+
+    Returns
+    -------
+    PreparedSequence; ``summary["reused"]`` tells whether it came from the cache.
+
+    Raises
+    ------
+    SequenceError, PreparationError, ClicksError
+        A broken sequence, unusable settings, a bad clicks file.
+    """
+    config = config or PrepareConfig()
+    seq = _open(sequence)
+    cl = _load_clicks(clicks)
+    key = cache_key(seq.content_key(), config.config_hash(), None if cl is None else cl.digest())
+    if cache_dir is None:
+        return run_preparation(seq, config, clicks=cl, progress=progress, key=key)
+    folder = cached_folder(cache_dir, key)
+    if artifact_key(folder) == key:
+        return _reused(folder)
+    with key_lock(cache_dir, key):
+        if artifact_key(folder) == key:  # prepared by another process while we waited
+            return _reused(folder)
+        prepared = run_preparation(seq, config, clicks=cl, progress=progress, key=key)
+        t0 = time.perf_counter()
+        write_artifact(prepared, folder)
+        prepared.summary["timings"]["artifact"] = time.perf_counter() - t0
+        log.info("preparation %s written to %s", key[:12], folder)
+    return prepared
+
+
+def _reused(folder: Path) -> PreparedSequence:
+    prepared = read_artifact(folder)
+    prepared.summary["reused"] = True
+    log.info("preparation %s reused from %s", prepared.key[:12], folder)
+    return prepared
+
+
+# ---------------------------------------------------------------------------- the recipe
+def run_preparation(
+    sequence: Sequence | str | Path,
+    config: PrepareConfig | None = None,
+    *,
+    clicks: Clicks | str | Path | None = None,
+    progress: Progress | None = None,
+    key: str = "",
+) -> PreparedSequence:
+    """Run the preparation recipe (module docstring) in memory; writes nothing."""
+    from worker.preparation.localization import odometry_track, run_strategy
+    from worker.preparation.localization.common import make_input
+    from worker.preparation.tracks import find_tracks
+
+    config = config or PrepareConfig()
+    stage = _Stages(progress)
+    t_start = time.perf_counter()
+    warnings: list[str] = []
+    reg = config.registration
+
+    with stage("open"):
+        seq = _open(sequence)
+        cl = _load_clicks(clicks)
+        cameras = load_cameras(seq.labels.raw, seq.cameras)
+        if cl is not None:
+            _check_clicks(cl, cameras)
+        if seq.lidar_stream is None:
+            raise PreparationError(f"{seq.folder}: sequence has no lidar files")
+
+    with stage("ins"):
+        try:
+            inp = make_input(seq, options=dict(config.localization.options))
+        except (ValueError, OSError) as exc:
+            raise PreparationError(f"{seq.folder}: no usable INS poses ({exc})") from exc
+        if not inp.frame_times:
+            raise PreparationError(f"{seq.folder}: no frame has a lidar timestamp")
+        frames = inp.frames
+
+    with stage("odometry"):
+        odo_track, odo_health = odometry_track(inp)
+
+    with stage("pre_registration"):
+        use_odo = reg.pre_poses == "odometry" and odo_health.fallback is None
+        pre_track = odo_track if use_odo else _at_frames(inp.ins_track, inp)
+        pre_cloud = register_clouds(
+            seq,
+            pre_track,
+            frames=frames[:: reg.pre_frame_step],
+            **config.registration_kwargs(False),
+        )
+
+    with stage("pre_tracks"):
+        pre_tracks = _find_tracks(find_tracks, pre_cloud, pre_track, seq, config)
+
+    with stage("strategy"):
+        inp.ego = pre_tracks.ego
+        result = run_strategy(config.strategy, inp)
+        track = result.track
+
+    with stage("registration"):
+        cloud = register_clouds(seq, track, frames=frames, **config.registration_kwargs(True))
+        if len(cloud) == 0:
+            warnings.append("the registered cloud is empty")
+
+    with stage("tracks"):
+        tracks = _find_tracks(find_tracks, cloud, track, seq, config)
+
+    with stage("scene_elements"):
+        reference = reference_centreline(tracks.ego, track, extend=reg.max_range)
+        scene = find_scene_elements(
+            cloud.xyz, reference, config.planes, config.poles, view_xyz=_view_points(cloud, track)
+        )
+
+    with stage("calibration_point"):
+        times = {c: _camera_times(seq, c) for c in cameras}
+        if cl is not None:
+            cal = calibration_point_from_clicks(
+                cloud.xyz, track, cameras, times, cl, config.calibration
+            )
+        elif config.calibration.auto:
+            cal = propose_pole_tops(scene.poles, track, cameras, times, config.calibration)
+        else:
+            cal = None
+
+    references = {"odometry": odo_track}
+    try:
+        references["ins"] = _at_frames(inp.ins_track, inp)
+    except ValueError as exc:
+        warnings.append(f"no INS reference poses at the frames ({exc})")
+    for source, ws in (
+        ("odometry", odo_health.warnings),
+        ("strategy", [w for w in result.health.warnings if w not in odo_health.warnings]),
+        ("tracks", tracks.warnings),
+        ("scene", scene.warnings),
+        ("calibration", [] if cal is None else cal.warnings),
+    ):
+        warnings += [f"{source}: {w}" for w in ws]
+    summary = _summary(
+        seq, config, cl, key, result, odo_health, pre_tracks, tracks, pre_cloud, cloud, scene, cal
+    )
+    summary["warnings"] = warnings
+    summary["timings"] = dict(stage.seconds)
+    summary["total_seconds"] = time.perf_counter() - t_start
+    prepared = PreparedSequence(
+        key=key,
+        world=inp.world,
+        track=track,
+        centrelines=list(tracks.centrelines),
+        planes=scene.planes,
+        poles=scene.poles,
+        calibration=cal,
+        summary=summary,
+        references=references,
+        _cloud=cloud,
+        _rail_points=np.asarray(tracks.rail_points, dtype=np.float64).reshape(-1, 3),
+    )
+    log.info("preparation of %s done in %.1f s", seq.name, summary["total_seconds"])
+    return prepared
+
+
+# ---------------------------------------------------------------------------- helpers
+def _check_clicks(clicks: Clicks, cameras: dict[str, Any]) -> None:
+    missing = sorted(set(clicks.uv) - set(cameras))
+    if missing:
+        raise ClicksError(
+            f"clicks of landmark {clicks.landmark!r} name camera(s) {', '.join(missing)} "
+            f"that the sequence lacks (it has: {', '.join(sorted(cameras)) or 'none'})"
+        )
+
+
+def _find_tracks(
+    find_tracks: Callable,
+    cloud: RegisteredCloud,
+    track: PoseTrack,
+    seq: Sequence,
+    config: PrepareConfig,
+) -> Any:
+    try:
+        return find_tracks(
+            cloud, track, backend=config.rails.backend, seq=seq, options=dict(config.rails.options)
+        )
+    except ValueError as exc:
+        raise PreparationError(f"rail extraction ({config.rails.backend}): {exc}") from exc
+
+
+def _at_frames(track: PoseTrack, inp: Any) -> PoseTrack:
+    """``track`` evaluated at the frames' lidar timestamps (frame_idx set)."""
+    T = track.interpolate(inp.times, max_extrapolation_s=2.0)
+    return PoseTrack(inp.times, T, np.asarray(inp.frames, dtype=np.int64))
+
+
+def _camera_times(seq: Sequence, camera: str) -> dict[int, float]:
+    ts = seq.timestamps(camera)
+    return {int(f): float(t) for f, t in zip(seq.frame_indices, ts, strict=True) if np.isfinite(t)}
+
+
+def _view_points(cloud: RegisteredCloud, track: PoseTrack) -> np.ndarray:
+    """(n, 3) base origin of the frame each point was measured in (the lidar position)."""
+    if track.frame_idx is None or len(cloud) == 0:
+        return np.zeros((len(cloud), 3))
+    order = np.argsort(track.frame_idx)
+    fi = track.frame_idx[order]
+    k = np.clip(np.searchsorted(fi, cloud.frame_idx), 0, len(fi) - 1)
+    return track.positions[order][k]
+
+
+def _jsonable(obj: Any) -> Any:
+    """Plain JSON values (numpy scalars/arrays converted, NaN/inf -> None, others -> str)."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist()) if obj.size <= 64 else f"array{list(obj.shape)}"
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(float(obj)) else None
+    if obj is None or isinstance(obj, str):
+        return obj
+    return str(obj)
+
+
+def _tracks_summary(tr: Any) -> dict[str, Any]:
+    return {
+        "backend": tr.backend,
+        "ego_found": tr.ego is not None,
+        "count": len(tr.centrelines),
+        "ego_length_m": None if tr.ego is None else tr.ego.length,
+        "rail_points": len(tr.rail_points),
+        "warnings": list(tr.warnings),
+        "metrics": _jsonable(tr.metrics),
+    }
+
+
+def _summary(
+    seq: Sequence,
+    config: PrepareConfig,
+    clicks: Clicks | None,
+    key: str,
+    result: Any,
+    odo_health: Any,
+    pre_tracks: Any,
+    tracks: Any,
+    pre_cloud: RegisteredCloud,
+    cloud: RegisteredCloud,
+    scene: Any,
+    cal: CalibrationPoint | None,
+) -> dict[str, Any]:
+    frames = seq.frame_indices
+    return _jsonable(
+        {
+            "artifact_version": ARTIFACT_VERSION,
+            "key": key,
+            "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "reused": False,
+            "sequence": {
+                "name": seq.name,
+                "folder": str(seq.folder.resolve()),
+                "content_key": seq.content_key(),
+                "frames": len(frames),
+                "first_frame": frames[0],
+                "last_frame": frames[-1],
+                "cameras": seq.cameras,
+            },
+            "config": config.model_dump(mode="json"),
+            "config_hash": config.config_hash(),
+            "clicks": None
+            if clicks is None
+            else {"landmark": clicks.landmark, "count": len(clicks), "digest": clicks.digest()},
+            "requested_strategy": config.strategy,
+            "strategy": result.strategy,
+            "health": result.health.to_json(),
+            "strategy_seconds": result.seconds,
+            "strategy_extras": result.extras,
+            "odometry_health": odo_health.to_json(),
+            "pre_tracks": _tracks_summary(pre_tracks),
+            "tracks": _tracks_summary(tracks),
+            "cloud": {
+                "points": len(cloud),
+                "voxel_size": config.registration.voxel_size,
+                "pre_points": len(pre_cloud),
+                "pre_voxel_size": config.registration.pre_voxel_size,
+            },
+            "scene": {
+                "planes": len(scene.planes),
+                "platforms": len(scene.platforms),
+                "poles": len(scene.poles),
+                "metrics": scene.metrics,
+                "warnings": scene.warnings,
+            },
+            "calibration": None if cal is None else cal.summary(),
+        }
+    )
