@@ -65,12 +65,20 @@ def voxel_keep(xyz: F64, voxel_size: float) -> NDArray[np.int64]:
     """Indices of one point per occupied voxel (the first in input order), sorted.
 
     Deterministic and attribute-preserving (the kept point is a real measurement, not a
-    centroid, so its frame, sensor and intensity stay meaningful).
+    centroid, so its frame, sensor and intensity stay meaningful). Voxel indices are
+    packed into one int64 (21 bits per axis, relative to the cloud's minimum corner) so the
+    uniqueness test is a fast 1-D sort; a cloud spanning more than 2^21 voxels along an
+    axis falls back to the row-wise unique.
     """
     if voxel_size <= 0 or len(xyz) == 0:
         return np.arange(len(xyz))
     key = np.floor(xyz / voxel_size).astype(np.int64)
-    _, first = np.unique(key, axis=0, return_index=True)
+    key -= key.min(axis=0)
+    if int(key.max()) < (1 << 21):
+        packed = (key[:, 0] << 42) | (key[:, 1] << 21) | key[:, 2]
+        _, first = np.unique(packed, return_index=True)
+    else:
+        _, first = np.unique(key, axis=0, return_index=True)
     return np.sort(first)
 
 
