@@ -1,0 +1,1 @@
+"""Augmentation (pipeline steps 3-7): placement, proxies, render, composite, lidar, labels."""
