@@ -1,0 +1,251 @@
+"""The virtual object added to the OpenLABEL file the way OSDaR23 annotates objects.
+
+Per frame: a ``cuboid`` in the lidar frame and a ``vec`` of the lidar point indices on
+the object; per camera where the object is visible: a ``bbox`` [x_center, y_center, width,
+height] and a closed ``poly2d`` outline of the visible mask. Names follow OSDaR23:
+``<sensor>__<kind>__<class>``. Attributes: ``occlusion`` (OSDaR23's buckets), truncation
+flags, and provenance (``isSynthetic`` true, ``generator`` osdar-ar, ``osdarArClass``, the
+exact obstacle). OSDaR23 has no class for rocks or fallen trees: they are typed
+``obstacle`` (animals ``animal``, people ``person``), the exact class in ``osdarArClass``.
+"""
+
+from __future__ import annotations
+
+import uuid
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from renderer.mesh import ObjectMesh
+from renderer.transforms import invert_T, matrix_to_quat, transform_points
+
+F64 = NDArray[np.float64]
+
+OSDAR_TYPE = {
+    "person": "person",
+    "cow": "animal",
+    "horse": "animal",
+    "elephant": "animal",
+    "rock": "obstacle",
+    "fallen_tree": "obstacle",
+}
+# Fixed namespace so that the same job gives the same object UUIDs.
+_NAMESPACE = uuid.UUID("6f1c3a52-3c55-4f0e-9a0c-0d5a1e0f2b11")
+
+
+def osdar_type(obj_class: str) -> str:
+    return OSDAR_TYPE.get(obj_class, "obstacle")
+
+
+def occlusion_bucket(visible_fraction: float) -> str:
+    """OSDaR23's occlusion text from the visible fraction of the object's pixels."""
+    occ = 1.0 - float(np.clip(visible_fraction, 0.0, 1.0))
+    if occ < 0.25:
+        return "0-25 %"
+    if occ < 0.50:
+        return "25-50 %"
+    if occ < 0.75:
+        return "50-75 %"
+    if occ < 0.999:
+        return "75-99 %"
+    return "100 %"
+
+
+@dataclass
+class CameraView:
+    """What one camera sees of the object in one frame (full-image pixel coordinates)."""
+
+    bbox: tuple[float, float, float, float]  # x_center, y_center, width, height
+    outline: list[float]  # flat [x0, y0, x1, y1, ...], closed
+    visible_fraction: float
+    truncated: bool
+
+
+@dataclass
+class FrameAnnotation:
+    """The object in one frame: cuboid in the lidar frame, camera views, lidar indices."""
+
+    frame_idx: int
+    cuboid: list[float]  # [x, y, z, qx, qy, qz, qw, sx, sy, sz]
+    views: dict[str, CameraView] = field(default_factory=dict)
+    lidar_indices: list[int] | None = None
+
+
+def cuboid_in_lidar(obj: ObjectMesh, T_world_obj: F64, T_world_base: F64) -> list[float]:
+    """OpenLABEL cuboid [x, y, z, qx, qy, qz, qw, sx, sy, sz] of the object's bounding box
+    in the lidar (base) frame at a frame's pose."""
+    b = obj.bounds
+    centre_obj = 0.5 * (b[0] + b[1])
+    T_base_obj = invert_T(T_world_base) @ T_world_obj
+    c = transform_points(T_base_obj, centre_obj[None])[0]
+    q = matrix_to_quat(T_base_obj[:3, :3])
+    return [*map(float, c), *map(float, q), *map(float, obj.size)]
+
+
+def mask_outline(alpha: NDArray, offset_uv: tuple[int, int], threshold: float = 0.5) -> list[float]:
+    """Closed outline (flat list, full-image pixels) of the largest blob of a mask.
+
+    alpha : (h, w) coverage of a region of interest whose top-left pixel is ``offset_uv``.
+    """
+    m = (np.asarray(alpha) >= threshold).astype(np.uint8)
+    if not m.any():
+        return []
+    contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    c = max(contours, key=cv2.contourArea)
+    c = cv2.approxPolyDP(c, 0.5, True).reshape(-1, 2).astype(np.float64)
+    c += np.asarray(offset_uv, dtype=np.float64)
+    return [float(v) for v in c.ravel()]
+
+
+def _entry(
+    name: str,
+    kind: str,
+    cs: str,
+    val: Any,
+    uid: str,
+    text: dict[str, str],
+    booleans: dict[str, bool],
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    e: dict[str, Any] = {"name": name, "val": val}
+    if extra:
+        e.update(extra)
+    e.update(
+        {
+            "coordinate_system": cs,
+            "uid": uid,
+            "attributes": {
+                "boolean": [{"name": k, "val": v} for k, v in booleans.items()],
+                "num": [],
+                "text": [{"name": k, "val": v} for k, v in text.items()],
+                "vec": [],
+            },
+        }
+    )
+    return e
+
+
+def _intervals(frames: list[int]) -> list[dict[str, int]]:
+    out: list[dict[str, int]] = []
+    for f in sorted(frames):
+        if out and f == out[-1]["frame_end"] + 1:
+            out[-1]["frame_end"] = f
+        else:
+            out.append({"frame_start": f, "frame_end": f})
+    return out
+
+
+def add_object(
+    labels_raw: dict[str, Any],
+    *,
+    obj_class: str,
+    frames: list[FrameAnnotation],
+    seed: str = "osdar-ar",
+    lidar_cs: str = "lidar",
+) -> str:
+    """Add the object to an OpenLABEL dict in place; returns its UUID.
+
+    Frames of ``frames`` must exist in the labels. The object's name is
+    ``<class>_synthetic_<n>`` with n counting synthetic objects already present.
+    """
+    ol = labels_raw["openlabel"]
+    otype = osdar_type(obj_class)
+    oid = str(uuid.uuid5(_NAMESPACE, f"{seed}/object"))
+    n_existing = sum(1 for o in ol.get("objects", {}).values() if "_synthetic_" in o["name"])
+    provenance_text = {"generator": "osdar-ar", "osdarArClass": obj_class}
+    pointers: dict[str, dict[str, Any]] = {}
+
+    def point(name: str, kind: str, frame: int, text: dict, booleans: dict) -> None:
+        p = pointers.setdefault(
+            name,
+            {
+                "attribute_pointers": {
+                    **{k: "text" for k in text},
+                    **{k: "boolean" for k in booleans},
+                },
+                "frame_intervals": [],
+                "type": kind,
+                "_frames": [],
+            },
+        )
+        p["_frames"].append(frame)
+
+    for fa in frames:
+        fkey = str(fa.frame_idx)
+        if fkey not in ol["frames"]:
+            raise KeyError(f"frame {fa.frame_idx} is not in the labels")
+        data: dict[str, list] = {}
+        any_occl = min((v.visible_fraction for v in fa.views.values()), default=1.0)
+        base_text = {"occlusion": occlusion_bucket(any_occl), **provenance_text}
+        booleans = {"isSynthetic": True}
+        cub_name = f"{lidar_cs}__cuboid__{otype}"
+        data.setdefault("cuboid", []).append(
+            _entry(
+                cub_name,
+                "cuboid",
+                lidar_cs,
+                fa.cuboid,
+                str(uuid.uuid5(_NAMESPACE, f"{seed}/{fkey}/cuboid")),
+                base_text,
+                booleans,
+            )
+        )
+        point(cub_name, "cuboid", fa.frame_idx, base_text, booleans)
+        if fa.lidar_indices is not None:
+            vec_name = f"{lidar_cs}__vec__{otype}"
+            data.setdefault("vec", []).append(
+                _entry(
+                    vec_name,
+                    "vec",
+                    lidar_cs,
+                    [int(i) for i in fa.lidar_indices],
+                    str(uuid.uuid5(_NAMESPACE, f"{seed}/{fkey}/vec")),
+                    base_text,
+                    booleans,
+                )
+            )
+            point(vec_name, "vec", fa.frame_idx, base_text, booleans)
+        for cam, view in sorted(fa.views.items()):
+            text = {"occlusion": occlusion_bucket(view.visible_fraction), **provenance_text}
+            b = {"isSynthetic": True, "isTruncated": bool(view.truncated)}
+            bb_name = f"{cam}__bbox__{otype}"
+            data.setdefault("bbox", []).append(
+                _entry(
+                    bb_name,
+                    "bbox",
+                    cam,
+                    [float(v) for v in view.bbox],
+                    str(uuid.uuid5(_NAMESPACE, f"{seed}/{fkey}/{cam}/bbox")),
+                    text,
+                    b,
+                )
+            )
+            point(bb_name, "bbox", fa.frame_idx, text, b)
+            if len(view.outline) >= 6:
+                pl_name = f"{cam}__poly2d__{otype}"
+                data.setdefault("poly2d", []).append(
+                    _entry(
+                        pl_name,
+                        "poly2d",
+                        cam,
+                        view.outline,
+                        str(uuid.uuid5(_NAMESPACE, f"{seed}/{fkey}/{cam}/poly2d")),
+                        text,
+                        b,
+                        extra={"closed": True, "mode": "MODE_POLY2D_ABSOLUTE"},
+                    )
+                )
+                point(pl_name, "poly2d", fa.frame_idx, text, b)
+        ol["frames"][fkey].setdefault("objects", {})[oid] = {"object_data": data}
+    for p in pointers.values():
+        p["frame_intervals"] = _intervals(p.pop("_frames"))
+    ol.setdefault("objects", {})[oid] = {
+        "name": f"{obj_class}_synthetic_{n_existing + 1:04d}",
+        "type": otype,
+        "frame_intervals": _intervals([fa.frame_idx for fa in frames]),
+        "object_data_pointers": pointers,
+    }
+    return oid
