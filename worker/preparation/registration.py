@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from renderer.transforms import transform_points
 from worker.osdar.sequence import Sequence
 from worker.poses import PoseTrack
+from worker.preparation.frame_clouds import FrameClouds
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +90,7 @@ def register_clouds(
     frames: Iterable[int] | None = None,
     max_range: float | None = None,
     sensors: Iterable[int] | None = None,
+    clouds: FrameClouds | None = None,
 ) -> RegisteredCloud:
     """Merge the frames' clouds into the world frame with ``track`` (T_world_base).
 
@@ -100,6 +102,8 @@ def register_clouds(
     frames : frame counters to use (default all).
     max_range : drop points farther than this from the base origin (m).
     sensors : sensor_index values to keep (default all).
+    clouds : the frames' clouds already read and filtered (a FrameClouds of the same
+        sequence); read from the files when None.
     """
     lidar = seq.lidar_stream
     if lidar is None:
@@ -109,17 +113,22 @@ def register_clouds(
     keep_sensors = None if sensors is None else np.asarray(list(sensors), dtype=np.uint8)
     parts = []
     for f in counters:
-        cloud = seq.pcd(f, allow_nonfinite=True)
-        p_base = cloud.xyz
+        if clouds is not None:
+            fc = clouds.get(f)
+            p_base, si, inten = fc.p_base, fc.sensor_index, fc.intensity
+        else:
+            cloud = seq.pcd(f, allow_nonfinite=True)
+            p_base = cloud.xyz
+            si = cloud.fields.get("sensor_index")
+            si = np.zeros(len(p_base), np.uint8) if si is None else si.astype(np.uint8)
+            inten = cloud.fields.get("intensity")
+            n = len(p_base)
+            inten = np.zeros(n, np.float32) if inten is None else inten.astype(np.float32)
         mask = np.isfinite(p_base).all(axis=1)
         if max_range is not None:
-            mask &= np.linalg.norm(p_base, axis=1) <= max_range
-        si = cloud.fields.get("sensor_index")
-        si = np.zeros(len(p_base), np.uint8) if si is None else si.astype(np.uint8)
+            mask &= np.einsum("ij,ij->i", p_base, p_base) <= max_range**2
         if keep_sensors is not None:
             mask &= np.isin(si, keep_sensors)
-        inten = cloud.fields.get("intensity")
-        inten = np.zeros(len(p_base), np.float32) if inten is None else inten.astype(np.float32)
         p_base, si, inten = p_base[mask], si[mask], inten[mask]
         T = track.interpolate(np.array([ts[f]]))[0]
         p_world = transform_points(T, p_base)

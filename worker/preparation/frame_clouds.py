@@ -1,0 +1,100 @@
+"""Each frame's lidar cloud read once per preparation and kept, filtered, in memory.
+
+Preparation needs every cloud several times (odometry, pre-registration for the rails,
+final registration with the chosen poses). Reading and parsing the PCDs dominates all but
+KISS-ICP itself, so a :class:`FrameClouds` reads each file once, drops non-finite points
+and points beyond ``max_range``, thins it with a fine voxel filter in the base frame, and
+serves it to every consumer.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from worker.osdar.sequence import Sequence
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FrameCloud:
+    """One frame's cloud in its base frame at the lidar timestamp.
+
+    p_base : (n, 3) float64; sensor_index : (n,) uint8; intensity : (n,) float32;
+    timestamp : (n,) float64 per-point times (s); t_frame : the frame's lidar timestamp.
+    """
+
+    p_base: NDArray[np.float64]
+    sensor_index: NDArray[np.uint8]
+    intensity: NDArray[np.float32]
+    timestamp: NDArray[np.float64]
+    t_frame: float
+
+
+class FrameClouds:
+    """Lazy, memoised access to the frames' filtered clouds.
+
+    Parameters
+    ----------
+    seq : the sequence.
+    max_range : points farther than this from the base origin are dropped (m).
+    voxel_size : voxel filter in the base frame (m); 0 keeps every point.
+    """
+
+    def __init__(self, seq: Sequence, max_range: float = 100.0, voxel_size: float = 0.0) -> None:
+        if seq.lidar_stream is None:
+            raise ValueError(f"sequence {seq.name} has no lidar stream")
+        self.seq = seq
+        self.max_range = float(max_range)
+        self.voxel_size = float(voxel_size)
+        ts = seq.timestamps(seq.lidar_stream)
+        self.frame_times = {
+            int(f): float(t) for f, t in zip(seq.frame_indices, ts, strict=True) if np.isfinite(t)
+        }
+        self._cache: dict[int, FrameCloud] = {}
+        self.dropped_nonfinite = 0
+
+    @property
+    def frames(self) -> list[int]:
+        return sorted(self.frame_times)
+
+    def get(self, frame: int) -> FrameCloud:
+        """The filtered cloud of one frame (read on first use)."""
+        hit = self._cache.get(frame)
+        if hit is not None:
+            return hit
+        from worker.preparation.registration import voxel_keep
+
+        cloud = self.seq.pcd(frame, allow_nonfinite=True)
+        p = cloud.xyz
+        finite = np.isfinite(p).all(axis=1)
+        self.dropped_nonfinite += int((~finite).sum())
+        keep = finite & (np.einsum("ij,ij->i", p, p) <= self.max_range**2)
+        n = len(p)
+        si = cloud.fields.get("sensor_index")
+        si = np.zeros(n, np.uint8) if si is None else np.asarray(si).astype(np.uint8)
+        it = cloud.fields.get("intensity")
+        it = np.zeros(n, np.float32) if it is None else np.asarray(it).astype(np.float32)
+        tt = cloud.fields.get("timestamp")
+        t_frame = self.frame_times.get(frame, np.nan)
+        tt = np.full(n, t_frame) if tt is None else np.asarray(tt).astype(np.float64)
+        p, si, it, tt = p[keep], si[keep], it[keep], tt[keep]
+        k = voxel_keep(p, self.voxel_size)
+        fc = FrameCloud(p[k], si[k], it[k], tt[k], t_frame)
+        self._cache[frame] = fc
+        return fc
+
+    def __iter__(self) -> Iterator[tuple[int, FrameCloud]]:
+        for f in self.frames:
+            yield f, self.get(f)
+
+    def memory_bytes(self) -> int:
+        return sum(
+            c.p_base.nbytes + c.sensor_index.nbytes + c.intensity.nbytes + c.timestamp.nbytes
+            for c in self._cache.values()
+        )
