@@ -1,0 +1,63 @@
+"""Localization strategies: T_world_base at every frame's lidar timestamp.
+
+``STRATEGIES`` names them; :func:`run_strategy` runs one on a :class:`LocalizationInput`
+(:func:`make_input` builds one from a sequence). :func:`odometry_track` is the shared,
+memoised KISS-ICP run (the orchestrator calls it first to register a cloud for rail
+extraction). Every strategy is in its own module: ``ins``, ``odometry``, ``rails``,
+``fused``, ``auto``.
+"""
+
+from __future__ import annotations
+
+from worker.preparation.localization.base import (
+    Health,
+    LocalizationInput,
+    LocalizationResult,
+    Strategy,
+)
+from worker.preparation.localization.common import make_input
+from worker.preparation.localization.odometry import odometry_track
+
+STRATEGIES = ("ins", "odometry", "rails", "fused", "auto")
+
+__all__ = [
+    "STRATEGIES",
+    "Health",
+    "LocalizationInput",
+    "LocalizationResult",
+    "Strategy",
+    "get_strategy",
+    "make_input",
+    "odometry_track",
+    "run_strategy",
+]
+
+
+def get_strategy(name: str) -> Strategy:
+    """The strategy called ``name`` (one of ``STRATEGIES``); ValueError otherwise."""
+    if name == "ins":
+        from worker.preparation.localization.ins import InsStrategy
+
+        return InsStrategy()
+    if name == "odometry":
+        from worker.preparation.localization.odometry import OdometryStrategy
+
+        return OdometryStrategy()
+    if name == "rails":
+        from worker.preparation.localization.rails import RailsStrategy
+
+        return RailsStrategy()
+    if name == "fused":
+        from worker.preparation.localization.fused import FusedStrategy
+
+        return FusedStrategy()
+    if name == "auto":
+        from worker.preparation.localization.auto import AutoStrategy
+
+        return AutoStrategy()
+    raise ValueError(f"unknown localization strategy {name!r}; valid: {', '.join(STRATEGIES)}")
+
+
+def run_strategy(name: str, inp: LocalizationInput) -> LocalizationResult:
+    """Run strategy ``name`` on ``inp`` (poses at every frame's lidar time, finite)."""
+    return get_strategy(name).run(inp)

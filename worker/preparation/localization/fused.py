@@ -1,0 +1,519 @@
+"""Strategy ``fused``: odometry, INS and the rail constraint in one least-squares smoothing.
+
+Unknowns: the 6-DoF pose ``T_world_base`` of every frame (a small rotation vector, applied
+on the left, and a position correction around an initial guess) and the INS-to-lidar
+misalignment ``M = make_T(Exp(b), l)`` (boresight ``b`` 3, lever arm ``l`` 3 in the base
+frame) with the INS latency ``L`` (1). With the nominal assumption the INS reports
+``T_nom(t + L) = T_world_base(t) @ M`` (see :mod:`worker.synth.ins_sim` and
+:class:`worker.poses.InsToLidar`).
+
+Residuals, each divided by its standard deviation:
+
+- KISS-ICP relative motions between consecutive frames (translation in the earlier
+  frame, rotation); the along-track component is down-weighted where the ICP problem is
+  degenerate (per frame, and for the whole run when odometry is flagged), and frames
+  whose ICP step disagrees with the INS speed are down-weighted;
+- INS positions and attitude through the misalignment (the latency rotates the INS
+  attitude sample by its angular rate: the heading lag in curves), weak, after removing
+  detected GNSS jump steps; a Huber loss takes what remains of jumps and drift;
+- the rail constraint when an ego centreline is known: the base origin on the centreline
+  (lateral, and height along the canted rail-plane normal, sigma ~1-2 cm for body sway),
+  the orientation near the centreline frame (heading from the tangent, pitch from the
+  slope, roll from the cant); linearised at the current positions and re-linearised once;
+- a smoothness prior on the positions and rotations (second differences), and priors on the
+  misalignment (zero lever arm, boresight and latency).
+
+Solved by Gauss-Newton with Huber weights (iteratively reweighted) on the sparse normal
+equations, the Jacobian by grouped finite differences (a few dozen residual evaluations);
+``scipy.optimize.least_squares`` with ``jac_sparsity`` converged too slowly with its
+inexact (lsmr) trust-region steps.
+
+Observability: the lever arm along the track and the latency (times the speed) move the
+poses along the track exactly like the INS's own along-track error, which nothing here
+observes: the poses follow the INS along the track, the along-track lever arm stays at its
+zero prior, and the latency is estimated from the attitude lag only
+(in curves). Without rails the misalignment is kept at the nominal assumption; at a
+standstill only what the rails fix against the INS attitude is estimated. Those cases are
+said in the health warnings / extras.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import csc_matrix, identity, lil_matrix
+from scipy.sparse.linalg import spsolve
+from scipy.spatial.transform import Rotation
+
+from worker.poses import InsToLidar, PoseTrack
+from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
+from worker.preparation.localization.common import (
+    InsFrames,
+    ins_at_frames,
+    make_result,
+    poses_from,
+    remove_jumps,
+)
+from worker.preparation.localization.odometry import (
+    degenerate_frames,
+    is_degenerate,
+    odometry_deltas,
+    odometry_run,
+    odometry_track,
+)
+from worker.preparation.localization.rails import rail_frames
+
+F64 = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+DEG = np.pi / 180.0
+
+
+@dataclass(frozen=True)
+class Sigmas:
+    """Standard deviations of the residual blocks (m, rad, s)."""
+
+    odo_t: float = 0.015
+    odo_r: float = 0.03 * DEG
+    odo_t_degenerate: float = 2.0
+    ins_p: float = 0.05
+    ins_r: float = 0.03 * DEG
+    rail_lat: float = 0.015
+    rail_vert: float = 0.01
+    rail_r: tuple[float, float, float] = (0.05 * DEG, 0.05 * DEG, 0.05 * DEG)
+    acc: float = 0.02
+    rot_acc: float = 0.02 * DEG
+    lever: float = 1.0
+    boresight: float = 2.0 * DEG
+    latency: float = 0.05
+    huber: float = 3.0
+
+
+@dataclass
+class Problem:
+    """Everything the residual function needs (fixed during a solve)."""
+
+    R0: F64  # (n, 3, 3) initial rotations
+    p0: F64  # (n, 3) initial positions
+    d_t: F64  # (n-1, 3) odometry translations in the earlier frame
+    d_R: F64  # (n-1, 3, 3) odometry rotations
+    w_odo_t: F64  # (n-1, 3) 1/sigma per component
+    w_odo_r: F64  # (n-1,) 1/sigma
+    ins_k: NDArray[np.int64]  # frames with an INS record
+    p_ins: F64  # (m, 3) nominal INS positions (jumps removed)
+    v_ins: F64  # (m, 3) INS velocities
+    R_ins: F64  # (m, 3, 3) nominal INS rotations
+    w_ins: F64  # (m, 3) angular rate (world, rad/s)
+    rail: dict | None  # linearised rail constraint or None
+    sig: Sigmas
+    n: int
+    lever_sigma: F64  # (3,) prior sigmas of the lever arm (x tight unless observable)
+    bore_sigma: float  # prior sigma of the boresight (tight without rails)
+
+
+def _rotvec_rates(R: F64, times: F64) -> F64:
+    """(n, 3) world angular rates from rotations (n, 3, 3) by central differences."""
+    n = len(R)
+    if n < 2:
+        return np.zeros((n, 3))
+    rot = Rotation.from_matrix(R)
+    i0 = np.clip(np.arange(n) - 1, 0, n - 1)
+    i1 = np.clip(np.arange(n) + 1, 0, n - 1)
+    dt = times[i1] - times[i0]
+    dt[dt <= 0] = 1.0
+    return (rot[i1] * rot[i0].inv()).as_rotvec() / dt[:, None]
+
+
+def _linearise_rails(ego, p_world: F64, R_hint: F64) -> dict:
+    """Centreline frames at the projections of ``p_world`` (flipped to face like R_hint)."""
+    T, _, _ = rail_frames(ego, p_world)
+    cos = np.einsum("ni,ni->n", R_hint[:, :, 0], T[:, :3, 0])
+    if np.median(cos) < 0.0:
+        T[:, :3, :3] = T[:, :3, :3] @ np.diag([-1.0, -1.0, 1.0])
+    return {"c": T[:, :3, 3].copy(), "R": T[:, :3, :3].copy()}
+
+
+def _unpack(x: F64, pb: Problem) -> tuple[F64, F64, F64, F64, float]:
+    n = pb.n
+    xp = x[: 6 * n].reshape(n, 6)
+    R = Rotation.from_rotvec(xp[:, :3]).as_matrix() @ pb.R0
+    p = pb.p0 + xp[:, 3:]
+    lever, bore, lat = x[6 * n : 6 * n + 3], x[6 * n + 3 : 6 * n + 6], float(x[6 * n + 6])
+    return R, p, lever, bore, lat
+
+
+def residuals(x: F64, pb: Problem) -> F64:
+    """All residual blocks, stacked (see the module docstring)."""
+    R, p, lever, bore, lat = _unpack(x, pb)
+    sig = pb.sig
+    out = []
+    # odometry
+    Rt = np.swapaxes(R[:-1], 1, 2)
+    dp = np.einsum("nij,nj->ni", Rt, p[1:] - p[:-1]) - pb.d_t
+    out.append((dp * pb.w_odo_t).ravel())
+    E = np.swapaxes(pb.d_R, 1, 2) @ Rt @ R[1:]
+    out.append((Rotation.from_matrix(E).as_rotvec() * pb.w_odo_r[:, None]).ravel())
+    # INS
+    k = pb.ins_k
+    if len(k):
+        # The latency is not applied to positions: it moves them along the track only,
+        # exactly like the along-track lever arm and the INS's own along-track error, none
+        # of which anything here observes (see the module docstring).
+        pred = p[k] + R[k] @ lever
+        out.append(((pred - pb.p_ins) / sig.ins_p).ravel())
+        R_meas = Rotation.from_rotvec(pb.w_ins * lat).as_matrix() @ pb.R_ins
+        R_pred = R[k] @ Rotation.from_rotvec(bore).as_matrix()
+        err = Rotation.from_matrix(np.swapaxes(R_meas, 1, 2) @ R_pred).as_rotvec()
+        out.append((err / sig.ins_r).ravel())
+    # rails
+    if pb.rail is not None:
+        c, Rr = pb.rail["c"], pb.rail["R"]
+        d = p - c
+        lat_r = np.einsum("ni,ni->n", d, Rr[:, :, 1]) / sig.rail_lat
+        ver_r = np.einsum("ni,ni->n", d, Rr[:, :, 2]) / sig.rail_vert
+        out.append(lat_r)
+        out.append(ver_r)
+        err = Rotation.from_matrix(np.swapaxes(Rr, 1, 2) @ R).as_rotvec()
+        out.append((err / np.asarray(sig.rail_r)).ravel())
+    # smoothness
+    if pb.n >= 3:
+        out.append(((p[:-2] - 2.0 * p[1:-1] + p[2:]) / sig.acc).ravel())
+        w = Rotation.from_matrix(np.swapaxes(R[:-1], 1, 2) @ R[1:]).as_rotvec()
+        out.append(((w[1:] - w[:-1]) / sig.rot_acc).ravel())
+    out.append(lever / pb.lever_sigma)
+    out.append(bore / pb.bore_sigma)
+    out.append(np.array([lat / sig.latency]))
+    return np.concatenate(out)
+
+
+def sparsity(pb: Problem) -> lil_matrix:
+    """Jacobian sparsity pattern matching :func:`residuals`' row order."""
+    n = pb.n
+    m_cols = 6 * n + 7
+    rows: list[tuple[int, list[int]]] = []
+    mis = list(range(6 * n, 6 * n + 7))
+
+    def frame_cols(k: int) -> list[int]:
+        return list(range(6 * k, 6 * k + 6))
+
+    r = 0
+    for block in range(2):  # odometry translation, rotation
+        del block
+        for k in range(n - 1):
+            for _ in range(3):
+                rows.append((r, frame_cols(k) + frame_cols(k + 1)))
+                r += 1
+    for block in range(2):  # INS position, attitude
+        del block
+        for k in pb.ins_k:
+            for _ in range(3):
+                rows.append((r, frame_cols(int(k)) + mis))
+                r += 1
+    if pb.rail is not None:
+        for _ in range(2):
+            for k in range(n):
+                rows.append((r, frame_cols(k)))
+                r += 1
+        for k in range(n):
+            for _ in range(3):
+                rows.append((r, frame_cols(k)))
+                r += 1
+    if n >= 3:
+        for _ in range(2):  # position and rotation smoothness
+            for k in range(n - 2):
+                for _ in range(3):
+                    rows.append((r, frame_cols(k) + frame_cols(k + 1) + frame_cols(k + 2)))
+                    r += 1
+    for j in range(7):
+        rows.append((r, [6 * n + j]))
+        r += 1
+    S = lil_matrix((r, m_cols), dtype=int)
+    for i, cols in rows:
+        S[i, cols] = 1
+    return S
+
+
+def _odometry_weights(
+    inp: LocalizationInput, ins: InsFrames, d_t: F64, health: Health, sig: Sigmas
+) -> tuple[F64, F64, bool]:
+    """1/sigma of the odometry residuals, down-weighted where ICP is unreliable."""
+    n1 = len(d_t)
+    w_t = np.full((n1, 3), 1.0 / sig.odo_t)
+    w_r = np.full(n1, 1.0 / sig.odo_r)
+    try:
+        run = odometry_run(inp)
+        _, odo_health = odometry_track(inp)
+    except Exception as exc:
+        health.warn(f"fused: odometry unavailable ({exc}); INS and rails only")
+        return np.zeros((n1, 3)), np.zeros(n1), False
+    degenerate_run = is_degenerate(odo_health)
+    deg = degenerate_frames(run)
+    along_bad = deg[1:] | deg[:-1]
+    # ICP step against the INS speed (INS increments are cm-accurate over one frame).
+    speed_ins = np.linalg.norm(ins.v_world, axis=1)
+    step_ins = 0.5 * (speed_ins[1:] + speed_ins[:-1]) * np.diff(inp.times)
+    slip = np.abs(np.linalg.norm(d_t, axis=1) - step_ins) > 0.3
+    along_bad |= slip
+    w_t[along_bad, 0] = 1.0 / sig.odo_t_degenerate
+    skipped = np.zeros(n1 + 1, dtype=bool)
+    skipped[run.skipped] = True
+    bad = skipped[1:] | skipped[:-1]
+    if degenerate_run:
+        w_t[:, 0] = 1.0 / sig.odo_t_degenerate
+        w_t[:, 1:] /= 3.0
+        w_r /= 3.0
+        health.warn(
+            "fused: odometry degenerate along the track; along-track motion from INS and "
+            "smoothness only"
+        )
+    w_t[bad] /= 100.0
+    w_r[bad] /= 100.0
+    health.metrics["fused_odometry_downweighted_steps"] = float(np.sum(along_bad | bad))
+    return w_t, w_r, degenerate_run
+
+
+def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Problem:
+    """Initial guess and measurements of the smoothing problem."""
+    ins = ins_at_frames(inp, health)
+    n = len(inp.frames)
+    p_ins_all = remove_jumps(ins.T_world_base[:, :3, 3], ins.jump_frames, ins.jump_steps)
+    R_ins_all = ins.T_world_base[:, :3, :3]
+    rail = None
+    R0, p0 = R_ins_all.copy(), p_ins_all.copy()
+    if inp.ego is not None:
+        try:
+            T_r, _, _ = rail_frames(inp.ego, p_ins_all)
+            rail = _linearise_rails(inp.ego, p_ins_all, R_ins_all)
+            R0, p0 = rail["R"].copy(), T_r[:, :3, 3]
+        except Exception as exc:
+            health.warn(f"fused: rail constraint unusable ({exc}); without rails")
+            rail = None
+    else:
+        health.warn("no rails found: fused runs without the rail constraint")
+    if n >= 2:
+        D = odometry_deltas(inp)
+    else:
+        D = np.zeros((0, 4, 4))
+    d_t, d_R = D[:, :3, 3].copy(), D[:, :3, :3].copy()
+    w_t, w_r, _ = (
+        _odometry_weights(inp, ins, d_t, health, sig)
+        if n >= 2
+        else (
+            np.zeros((0, 3)),
+            np.zeros(0),
+            False,
+        )
+    )
+    heading = _heading_change_deg(R_ins_all)
+    health.metrics["fused_heading_change_deg"] = heading
+    lever_sigma = np.full(3, sig.lever)
+    # A body-fixed forward lever arm is indistinguishable from the INS's along-track error
+    # (in curves only barely: measured worse than keeping it): it stays at zero.
+    lever_sigma[0] = 0.01
+    bore_sigma = sig.boresight
+    if rail is None:
+        # Without rails only the direction of travel could tell the boresight, and the
+        # INS's drift over a short sequence bends that by tenths of a degree: keep the
+        # nominal misalignment.
+        lever_sigma[:] = 0.01
+        bore_sigma = 0.005 * DEG
+    k = np.flatnonzero(ins.covered).astype(np.int64)
+    if len(k) == 0:
+        k = np.arange(n, dtype=np.int64)  # extrapolated INS is all there is
+    return Problem(
+        R0=R0,
+        p0=p0,
+        d_t=d_t,
+        d_R=d_R,
+        w_odo_t=w_t,
+        w_odo_r=w_r,
+        ins_k=k,
+        p_ins=p_ins_all[k],
+        v_ins=ins.v_world[k],
+        R_ins=R_ins_all[k],
+        w_ins=_rotvec_rates(R_ins_all, inp.times)[k],
+        rail=rail,
+        sig=sig,
+        n=n,
+        lever_sigma=lever_sigma,
+        bore_sigma=bore_sigma,
+    )
+
+
+def _heading_change_deg(R_world_base: F64) -> float:
+    """Spread (deg) of the forward axis' heading over the sequence."""
+    x = R_world_base[:, :, 0]
+    yaw = np.unwrap(np.arctan2(x[:, 1], x[:, 0]))
+    return float(np.degrees(np.ptp(yaw))) if len(yaw) else 0.0
+
+
+def _column_groups(n: int) -> list[NDArray[np.int64]]:
+    """Columns that share no residual row (finite differences in one evaluation each).
+
+    A residual row touches at most three consecutive frames and the misalignment, so frame
+    columns with the same (frame mod 3, component) go together; the 7 misalignment columns
+    each stand alone.
+    """
+    groups = []
+    for phase in range(3):
+        for comp in range(6):
+            frames = np.arange(phase, n, 3)
+            if len(frames):
+                groups.append(6 * frames + comp)
+    groups.extend(np.array([6 * n + j]) for j in range(7))
+    return groups
+
+
+def jacobian(x: F64, r0: F64, pb: Problem, S: csc_matrix, groups: list) -> csc_matrix:
+    """Sparse forward-difference Jacobian of :func:`residuals` at ``x``."""
+    rows_all, cols_all, vals_all = [], [], []
+    indptr, indices = S.indptr, S.indices
+    for cols in groups:
+        h = 1e-6 * np.maximum(1.0, np.abs(x[cols]))
+        xh = x.copy()
+        xh[cols] += h
+        dr = residuals(xh, pb) - r0
+        for c, hc in zip(cols, h, strict=True):
+            rows = indices[indptr[c] : indptr[c + 1]]
+            rows_all.append(rows)
+            cols_all.append(np.full(len(rows), c))
+            vals_all.append(dr[rows] / hc)
+    return csc_matrix(
+        (np.concatenate(vals_all), (np.concatenate(rows_all), np.concatenate(cols_all))),
+        shape=S.shape,
+    )
+
+
+def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
+    """Gauss-Newton with Huber weights (IRLS) on the sparse problem; the parameter vector.
+
+    The problem is nearly linear (small rotation corrections), so a few iterations converge;
+    a small Levenberg damping keeps the unobservable directions at their priors.
+    """
+    x = np.zeros(6 * pb.n + 7) if x0 is None else x0.copy()
+    S = csc_matrix(sparsity(pb))
+    groups = _column_groups(pb.n)
+    c = pb.sig.huber
+    for _ in range(max_iter):
+        r = residuals(x, pb)
+        J = jacobian(x, r, pb, S, groups)
+        a = np.abs(r)
+        w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
+        JtW = J.T.multiply(w[None, :]).tocsc()
+        A = (JtW @ J).tocsc() + 1e-9 * identity(J.shape[1], format="csc")
+        dx = spsolve(A, -(JtW @ r))
+        if not np.all(np.isfinite(dx)):
+            raise FloatingPointError("non-finite Gauss-Newton step")
+        x = x + dx
+        if np.max(np.abs(dx)) < 1e-7:
+            break
+    return x
+
+
+def _rebase(x: F64, pb: Problem) -> tuple[Problem, F64]:
+    """Move the solution into the initial guess (zero pose corrections), keep the rest."""
+    R, p, _, _, _ = _unpack(x, pb)
+    pb.R0, pb.p0 = R, p
+    x_new = x.copy()
+    x_new[: 6 * pb.n] = 0.0
+    return pb, x_new
+
+
+def misalignment(x: F64, n: int) -> InsToLidar:
+    """The estimated misalignment as :class:`InsToLidar` (``T_ins_base = N @ M^-1``)."""
+    lever, bore, lat = x[6 * n : 6 * n + 3], x[6 * n + 3 : 6 * n + 6], float(x[6 * n + 6])
+    M = np.eye(4)
+    M[:3, :3] = Rotation.from_rotvec(bore).as_matrix()
+    M[:3, 3] = lever
+    N = InsToLidar.nominal().T_ins_base
+    return InsToLidar.from_T(N @ np.linalg.inv(M), latency_s=lat)
+
+
+def _block_rms(pb: Problem, x: F64) -> dict[str, float]:
+    """RMS (in sigmas) of the residual blocks, for health metrics."""
+    r = residuals(x, pb)
+    n, m = pb.n, len(pb.ins_k)
+    sizes = [("odo", 6 * (n - 1)), ("ins", 6 * m)]
+    if pb.rail is not None:
+        sizes.append(("rails", 5 * n))
+    out, i = {}, 0
+    for name, size in sizes:
+        seg = r[i : i + size]
+        out[f"fused_rms_{name}"] = float(np.sqrt(np.mean(seg**2))) if size else 0.0
+        i += size
+    return out
+
+
+class FusedStrategy:
+    """Least-squares smoothing of odometry, INS and the rail constraint."""
+
+    name = "fused"
+
+    def __init__(self, sigmas: Sigmas | None = None) -> None:
+        self.sigmas = sigmas or Sigmas()
+
+    def run(self, inp: LocalizationInput) -> LocalizationResult:
+        started = time.perf_counter()
+        health = Health()
+        try:
+            pb = build_problem(inp, health, self.sigmas)
+            x = solve(pb)
+            if pb.rail is not None and inp.ego is not None:
+                pb, x = _rebase(x, pb)
+                R, p, _, _, _ = _unpack(x, pb)
+                pb.rail = _linearise_rails(inp.ego, p, R)
+                x = solve(pb, x, max_iter=4)
+        except Exception as exc:
+            log.exception("fused smoothing failed")
+            return self._fallback(inp, health, started, f"smoothing failed ({exc})")
+        R, p, _, _, _ = _unpack(x, pb)
+        T = poses_from(R, p)
+        if not np.all(np.isfinite(T)):
+            return self._fallback(inp, health, started, "non-finite solution")
+        cal = misalignment(x, pb.n)
+        health.metrics.update(_block_rms(pb, x))
+        notes = self._observability(inp, pb, health)
+        return make_result(
+            self.name,
+            inp,
+            T,
+            health,
+            started,
+            extras={"ins_to_lidar": cal.to_json(), "observability": notes},
+        )
+
+    @staticmethod
+    def _observability(inp: LocalizationInput, pb: Problem, health: Health) -> list[str]:
+        notes = [
+            "along-track position from the INS as is: the along-track lever arm and the "
+            "latency times the speed are unobservable; latency from the attitude lag only"
+        ]
+        ins = inp.options.get("_ins_frames")
+        if isinstance(ins, InsFrames) and ins.standstill:
+            health.warn(
+                "fused: standstill, INS-to-lidar misalignment unobservable beyond what the "
+                "rails fix; priors kept"
+            )
+            notes.append("standstill: misalignment from priors (and rails) only")
+        if pb.rail is None:
+            notes.append("no rails: misalignment kept at the nominal assumption (unobservable)")
+        return notes
+
+    def _fallback(
+        self, inp: LocalizationInput, health: Health, started: float, why: str
+    ) -> LocalizationResult:
+        from worker.preparation.localization.rails import RailsStrategy
+
+        fallback = RailsStrategy().run(inp)
+        health.warn(f"fused: {why}; falling back to {fallback.health.fallback or 'rails'}")
+        health.fallback = fallback.health.fallback or "rails"
+        return make_result(self.name, inp, fallback.track.T, health, started)
+
+
+def fused_track(inp: LocalizationInput) -> PoseTrack:
+    """Convenience: the fused poses only."""
+    return FusedStrategy().run(inp).track
