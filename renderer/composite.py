@@ -1,0 +1,206 @@
+"""Composite a rendered object into a real frame (OpenCV, ROI only).
+
+:func:`composite` works in linear light inside ``render.roi`` and leaves every other pixel
+(and every ROI pixel that neither the object nor its shadow touches) byte-identical:
+
+1. **Lightness matching (LAB).** The object's colour (linear -> sRGB -> CIE LAB) keeps its
+   a, b; its L channel statistics over the object (alpha > 0.5) are moved toward those of
+   the real frame in a ring around the object (``ring`` = dilated mask minus a 2 px
+   dilation, width ~1/4 of the object's size, 6..48 px; the ring may extend beyond the ROI:
+   it is only read). The blend is partial, so an object keeps its own albedo contrast:
+   ``L' = mu_r' + (L - mu_o) * k`` with ``mu_r' = mu_o + LAB_MEAN_BLEND (mu_r - mu_o)`` and
+   ``k = (sd_r / sd_o) ** LAB_STD_BLEND`` (k clipped to [0.5, 2]).
+2. **Blur** of the premultiplied object layer (colour x alpha and alpha together, so
+   edges stay consistent): a Gaussian with sigma = sqrt(sigma_optics^2 + sigma_defocus^2)
+   where sigma_optics = ``OPTICS_SIGMA_PX`` x image scale (a real lens and demosaicing
+   never give a one-pixel-sharp edge) and sigma_defocus = fx x ``APERTURE_M`` /
+   (4 x distance) (the blur disc of a lens focused at infinity, aperture diameter
+   ``APERTURE_M``, as a Gaussian of the disc's standard deviation): the camera's own
+   resolution at that distance. Motion blur: a line kernel along the anchor's image
+   motion, length ``|motion_uv_per_m| x speed x exposure`` px (the train's forward motion
+   during the exposure).
+3. **Soft edges**: coverage feathered with a Gaussian of ``FEATHER_SIGMA_PX`` (also when
+   ``blur=False``), on top of the renderer's anti-aliased coverage.
+4. **Shadow**: real pixels (linear) x (1 - shadow_strength x shadow), shadow blurred like
+   the object.
+5. **Pixel offset**: the object and shadow layers are shifted by ``pixel_offset`` (du,
+   dv) px with ``cv2.warpAffine`` (bilinear) before blending (calibration-error
+   compensation).
+6. ``out = object_premultiplied + (1 - alpha) x shadowed_background``, linear -> sRGB,
+   rounded to uint8.
+
+When ``render.roi`` is None the input array itself is returned (writers can then copy the
+original file byte-identically).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from renderer.lighting import linear_to_srgb, srgb_to_linear
+from renderer.object_render import ObjectRender
+
+log = logging.getLogger(__name__)
+
+F32 = NDArray[np.float32]
+
+LAB_MEAN_BLEND = 0.6
+LAB_STD_BLEND = 0.5
+OPTICS_SIGMA_PX = 0.6  # at the sensor's full resolution
+APERTURE_M = 0.004  # effective aperture diameter of the front cameras (assumed)
+FEATHER_SIGMA_PX = 0.5
+_CHANGE_EPS = 1.0 / 4096.0
+_SRGB_LUT = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
+
+
+def blur_sigma_px(render: ObjectRender) -> float:
+    """Gaussian sigma (px) of the object's optical blur at its distance (see module doc)."""
+    scale = render.pixel_scale if render.pixel_scale > 0 else 1.0
+    s_opt = OPTICS_SIGMA_PX * scale
+    d = render.distance_m if np.isfinite(render.distance_m) and render.distance_m > 0 else 1e9
+    # Median visible depth is the better distance when the object is there.
+    if render.depth.size and np.any(np.isfinite(render.depth)):
+        d = float(np.nanmedian(render.depth))
+    s_dof = render.focal_px * APERTURE_M / (4.0 * max(d, 0.1))
+    return float(np.hypot(s_opt, s_dof))
+
+
+def _gauss(img: F32, sigma: float) -> F32:
+    if sigma < 0.05:
+        return img
+    k = int(2 * np.ceil(3.0 * sigma) + 1)
+    return cv2.GaussianBlur(img, (k, k), sigma, sigmaY=sigma, borderType=cv2.BORDER_CONSTANT)
+
+
+def _motion(img: F32, vec: tuple[float, float]) -> F32:
+    """Box blur along ``vec`` (px), length |vec| (sub-pixel lengths: a 2-tap kernel)."""
+    length = float(np.hypot(*vec))
+    if length < 0.25:
+        return img
+    n = int(np.ceil(length)) * 2 + 1
+    k = np.zeros((n, n), np.float32)
+    c = n // 2
+    steps = max(8, 4 * int(np.ceil(length)))
+    for t in np.linspace(-0.5, 0.5, steps):
+        x, y = c + t * vec[0], c + t * vec[1]
+        x0, y0 = int(np.floor(x)), int(np.floor(y))
+        fx, fy = x - x0, y - y0
+        for dy, wy in ((0, 1 - fy), (1, fy)):
+            for dx, wx in ((0, 1 - fx), (1, fx)):
+                if 0 <= y0 + dy < n and 0 <= x0 + dx < n:
+                    k[y0 + dy, x0 + dx] += wx * wy
+    k /= k.sum()
+    return cv2.filter2D(img, -1, k, borderType=cv2.BORDER_CONSTANT)
+
+
+def _lab_match(
+    frame_rgb: NDArray[np.uint8], render: ObjectRender, color_lin: F32, alpha: F32
+) -> F32:
+    """The object's colour (linear) with its L statistics moved toward the ring's."""
+    u0, v0, u1, v1 = render.roi
+    H, W = frame_rgb.shape[:2]
+    obj = alpha > 0.5
+    if obj.sum() < 4:
+        return color_lin
+    vs, us = np.nonzero(obj)
+    size = max(vs.max() - vs.min(), us.max() - us.min()) + 1
+    ring_w = int(np.clip(size // 4, 6, 48))
+    # Window: the ROI grown by the ring (read-only outside the ROI).
+    a0, b0 = max(u0 - ring_w, 0), max(v0 - ring_w, 0)
+    a1, b1 = min(u1 + ring_w, W), min(v1 + ring_w, H)
+    free = np.full((b1 - b0, a1 - a0), 255, np.uint8)  # 0 on the object
+    free[v0 - b0 : v1 - b0, u0 - a0 : u1 - a0][alpha > 0.02] = 0
+    dist = cv2.distanceTransform(free, cv2.DIST_L2, 3)
+    ring = (dist > 2.5) & (dist <= ring_w)
+    if ring.sum() < 8:
+        return color_lin
+    real = frame_rgb[b0:b1, a0:a1][ring].astype(np.float32)[:, None] / 255.0
+    L_r = cv2.cvtColor(real, cv2.COLOR_RGB2Lab)[:, 0, 0]
+    has = alpha > 0
+    lab = cv2.cvtColor(linear_to_srgb(color_lin[has])[:, None], cv2.COLOR_RGB2Lab)
+    L_o = lab[:, 0, 0][obj[has]]
+    mu_o, sd_o = float(L_o.mean()), float(L_o.std())
+    mu_r, sd_r = float(L_r.mean()), float(L_r.std())
+    k = float(np.clip((max(sd_r, 0.5) / max(sd_o, 0.5)) ** LAB_STD_BLEND, 0.5, 2.0))
+    mu_t = mu_o + LAB_MEAN_BLEND * (mu_r - mu_o)
+    lab[:, 0, 0] = np.clip(mu_t + (lab[:, 0, 0] - mu_o) * k, 0.0, 100.0)
+    log.debug("LAB match: L object %.1f+-%.1f, ring %.1f+-%.1f -> mean %.1f, gain %.2f",
+              mu_o, sd_o, mu_r, sd_r, mu_t, k)  # fmt: skip
+    out = color_lin.copy()
+    out[has] = srgb_to_linear(np.clip(cv2.cvtColor(lab, cv2.COLOR_Lab2RGB)[:, 0], 0.0, 1.0))
+    return out
+
+
+def composite(
+    frame_rgb: NDArray[np.uint8],
+    render: ObjectRender,
+    *,
+    speed_mps: float = 0.0,
+    exposure_s: float = 0.005,
+    lab_match: bool = True,
+    blur: bool = True,
+    shadow_strength: float = 0.6,
+    pixel_offset: tuple[float, float] = (0.0, 0.0),
+) -> NDArray[np.uint8]:
+    """The frame (H, W, 3) uint8 sRGB with the rendered object (and its shadow) blended in.
+
+    Returns a new array (only ``render.roi`` differs), or ``frame_rgb`` itself when
+    ``render.roi`` is None.
+    """
+    if render.roi is None:
+        return frame_rgb
+    frame = np.asarray(frame_rgb)
+    if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
+        raise ValueError(f"frame must be (H, W, 3) uint8, got {frame.shape} {frame.dtype}")
+    u0, v0, u1, v1 = render.roi
+    if render.alpha.shape != (v1 - v0, u1 - u0):
+        raise ValueError("render arrays do not match its roi")
+    H, W = frame.shape[:2]
+    if u1 > W or v1 > H:
+        raise ValueError(f"roi {render.roi} outside a {W}x{H} frame")
+
+    alpha = render.alpha.astype(np.float32)
+    color = render.color.astype(np.float32)
+    if lab_match:
+        color = _lab_match(frame, render, color, alpha)
+    layer = np.empty((*alpha.shape, 5), np.float32)  # premultiplied rgb, alpha, shadow
+    layer[..., :3] = color * alpha[..., None]
+    layer[..., 3] = alpha
+    layer[..., 4] = render.shadow * float(shadow_strength)
+
+    sigma = FEATHER_SIGMA_PX
+    if blur:
+        sigma = float(np.hypot(blur_sigma_px(render), FEATHER_SIGMA_PX))
+        vec = np.asarray(render.motion_uv_per_m, np.float64) * speed_mps * exposure_s
+        if np.all(np.isfinite(vec)):
+            layer[..., :4] = _motion(np.ascontiguousarray(layer[..., :4]), (vec[0], vec[1]))
+    layer = np.dstack([_gauss(np.ascontiguousarray(layer[..., :4]), sigma),
+                       _gauss(np.ascontiguousarray(layer[..., 4]), sigma)])  # fmt: skip
+    du, dv = float(pixel_offset[0]), float(pixel_offset[1])
+    if du != 0.0 or dv != 0.0:
+        M = np.array([[1.0, 0.0, du], [0.0, 1.0, dv]], np.float32)
+        size = (layer.shape[1], layer.shape[0])
+        layer = np.dstack([
+            cv2.warpAffine(np.ascontiguousarray(layer[..., :4]), M, size, flags=cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=0),
+            cv2.warpAffine(np.ascontiguousarray(layer[..., 4]), M, size, flags=cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=0),
+        ])  # fmt: skip
+
+    a = np.clip(layer[..., 3], 0.0, 1.0)
+    sh = np.clip(layer[..., 4], 0.0, 1.0)
+    changed = (a > _CHANGE_EPS) | (sh > _CHANGE_EPS)
+    out = frame.copy()
+    if not changed.any():
+        return out
+    real = frame[v0:v1, u0:u1]
+    bg = _SRGB_LUT[real[changed]]  # (k, 3) linear
+    res = layer[changed, :3] + (1.0 - a[changed, None]) * bg * (1.0 - sh[changed, None])
+    enc = np.round(linear_to_srgb(res) * 255.0).astype(np.uint8)
+    roi_out = out[v0:v1, u0:u1]
+    roi_out[changed] = enc
+    return out

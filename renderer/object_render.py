@@ -1,0 +1,820 @@
+"""Render a virtual object into a real camera image: colour, coverage, depth and shadow.
+
+One :class:`ObjectRenderer` per camera (moderngl on EGL: llvmpipe or a GPU, same code).
+Per call, for the object at ``T_world_obj`` seen from the vehicle pose ``T_world_base``:
+
+1. **Geometry in float64, GPU in small numbers.** ``T_opt_obj = inv(T_world_base @
+   T_base_opt) @ T_world_obj`` is composed in float64; the object's vertices are uploaded
+   once in its own frame (metres around its origin), proxies relative to an origin on a
+   10 m grid next to the object. Only products of float64 matrices are cast to float32,
+   so world magnitudes (UTM, ECEF) never reach the GPU.
+2. **Region of interest.** The object's (and, with proxies and sun, its ground shadow's)
+   extent is found in undistorted normalised coordinates, clipped at the near plane
+   (edges crossing it are cut there), bounded by the camera's undistorted pinhole
+   (``CameraModel.render_setup``), then mapped through the real distortion (the rectangle's
+   boundary, radially clamped at the distortion fold ``r_valid``) into the distorted
+   image: ``roi`` = that box + ``ROI_MARGIN_PX``, clipped to the image. With
+   ``roi=False`` the whole image is the ROI.
+3. **Pinhole render of the ROI.** The sub-window of the render-setup pinhole that the
+   ROI's remap reads is rendered (supersampled ``s`` x ``s``), with a logarithmic depth
+   (``gl_FragDepth = ln(z / near) / ln(far / near)``, relative precision ~1e-6 of the
+   distance, so objects standing on a ground proxy do not z-fight):
+
+   - shadow map: the object's depth seen from the sun (orthographic, object frame);
+   - object pass: lit colour (:mod:`renderer.lighting`'s model, self-shadowed), coverage,
+     optical z;
+   - proxy pass (depth only for the image): proxies drawn behind the object's depth
+     with a relative bias ``PROXY_DEPTH_BIAS`` (a proxy must be really in front to hide
+     the object); where a proxy is the nearest surface it records "occluded" and the
+     fraction of sun light the object blocks there (percentage-closer filtering of the
+     shadow map).
+4. **Resolve and distort.** The supersamples are averaged (premultiplied by coverage),
+   then ``cv2.remap`` with the camera's own pinhole->distorted maps (restricted to the ROI
+   and shifted to the sub-window) gives the layers in the distorted image, so the object
+   lands where the real lens puts it.
+
+Anti-aliasing (``antialias``): ``"none"`` (s = 1), ``"ssaa<s>"`` (fixed integer s), or
+``"auto"``: the largest s <= ``AUTO_SSAA_MAX`` with s^2 x (sub-window pixels) <=
+``AUTO_SSAA_SAMPLES`` (small far objects get 4 x 4 samples, a full-image elephant 1).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import cv2
+import moderngl
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from renderer.camera import TOL, CameraModel, gl_projection
+from renderer.gl_context import create_context
+from renderer.lighting import Lighting
+from renderer.mesh import ObjectMesh, ProxyMesh
+from renderer.transforms import invert_T
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
+
+ROI_MARGIN_PX = 8  # around the projected extent (blur and feathering room for composite)
+AUTO_SSAA_MAX = 4
+AUTO_SSAA_SAMPLES = 1.2e5  # llvmpipe cost grows with triangles x samples
+PROXY_DEPTH_BIAS = 2e-4  # relative depth a proxy must be in front to hide the object
+SHADOW_MAP_MIN, SHADOW_MAP_MAX = 64, 2048
+SHADOW_MAX_LENGTH = 4.0  # ground shadow length at most this x the object's height (ROI)
+_BOUNDARY_SAMPLES = 96  # per edge, when mapping the ROI rectangle through the distortion
+_PROXY_ORIGIN_GRID = 10.0  # m
+
+
+# ---------------------------------------------------------------------------- shaders
+_SHADOW_FN = """
+uniform sampler2D u_shadow;
+uniform int u_use_shadow;
+uniform vec2 u_sm_size;
+// Fraction of sun light blocked at light-space point l = (x_ndc, y_ndc, depth along the
+// light in m), 4x4 percentage-closer filter with bilinear weights.
+float shadow_at(vec3 l, float bias) {
+    if (u_use_shadow == 0) return 0.0;
+    vec2 t = (l.xy * 0.5 + 0.5) * u_sm_size - 0.5;
+    if (t.x < -1.0 || t.y < -1.0 || t.x > u_sm_size.x || t.y > u_sm_size.y) return 0.0;
+    vec2 f = fract(t);
+    ivec2 i0 = ivec2(floor(t));
+    ivec2 hi = ivec2(u_sm_size) - 1;
+    float acc = 0.0, wsum = 0.0;
+    for (int y = -1; y <= 2; ++y) {
+        float wy = y == -1 ? 1.0 - f.y : (y == 2 ? f.y : 1.0);
+        for (int x = -1; x <= 2; ++x) {
+            float wx = x == -1 ? 1.0 - f.x : (x == 2 ? f.x : 1.0);
+            float d = texelFetch(u_shadow, clamp(i0 + ivec2(x, y), ivec2(0), hi), 0).r;
+            acc += wx * wy * (d < l.z - bias ? 1.0 : 0.0);
+            wsum += wx * wy;
+        }
+    }
+    return acc / wsum;
+}
+"""
+
+_OBJ_VERTEX = """
+#version 330
+uniform mat4 u_mvp;
+uniform mat4 u_light;
+in vec3 in_pos;
+in vec3 in_nrm;
+in vec3 in_col;
+out vec3 v_pos;
+out vec3 v_nrm;
+out vec3 v_col;
+out vec3 v_light;
+void main() {
+    v_pos = in_pos;
+    v_nrm = in_nrm;
+    v_col = in_col;
+    v_light = (u_light * vec4(in_pos, 1.0)).xyz;
+    gl_Position = u_mvp * vec4(in_pos, 1.0);
+}
+"""
+
+_OBJ_FRAGMENT = (
+    """
+#version 330
+uniform vec3 u_sun;      // towards the sun, object frame
+uniform vec3 u_up;       // world up, object frame
+uniform vec3 u_cam;      // camera centre, object frame
+uniform vec3 u_sun_rgb;
+uniform vec3 u_sky;
+uniform vec3 u_ground;
+uniform float u_near;
+uniform float u_log_far;
+uniform float u_self_bias;
+in vec3 v_pos;
+in vec3 v_nrm;
+in vec3 v_col;
+in vec3 v_light;
+layout(location = 0) out vec4 f_col;
+layout(location = 1) out vec4 f_aux;
+"""
+    + _SHADOW_FN
+    + """
+void main() {
+    float z = 1.0 / gl_FragCoord.w;
+    gl_FragDepth = log(z / u_near) / u_log_far;
+    vec3 n = normalize(v_nrm);
+    vec3 nf = normalize(cross(dFdx(v_pos), dFdy(v_pos)));
+    if (dot(nf, n) < 0.0) nf = -nf;
+    if (dot(nf, n) < 0.8) n = nf;          // hard edge: the smooth normal is meaningless
+    if (dot(n, u_cam - v_pos) < 0.0) n = -n;  // back faces of open meshes
+    float lam = max(dot(n, u_sun), 0.0);
+    float lit = lam > 0.0 ? 1.0 - shadow_at(v_light, u_self_bias) : 0.0;
+    vec3 amb = mix(u_ground, u_sky, 0.5 + 0.5 * dot(n, u_up));
+    f_col = vec4(v_col * (amb + u_sun_rgb * lam * lit), 1.0);
+    f_aux = vec4(z, 0.0, 0.0, 1.0);
+}
+"""
+)
+
+_PROXY_VERTEX = """
+#version 330
+uniform mat4 u_mvp;
+uniform mat4 u_light;
+in vec3 in_pos;
+out vec3 v_light;
+void main() {
+    v_light = (u_light * vec4(in_pos, 1.0)).xyz;
+    gl_Position = u_mvp * vec4(in_pos, 1.0);
+}
+"""
+
+_PROXY_FRAGMENT = (
+    """
+#version 330
+uniform float u_near;
+uniform float u_log_far;
+uniform float u_bias;
+in vec3 v_light;
+layout(location = 0) out vec4 f_aux;
+"""
+    + _SHADOW_FN
+    + """
+void main() {
+    float z = 1.0 / gl_FragCoord.w;
+    gl_FragDepth = (log(z / u_near) + u_bias) / u_log_far;
+    f_aux = vec4(0.0, 1.0, shadow_at(v_light, 0.0), 1.0);
+}
+"""
+)
+
+_SM_VERTEX = """
+#version 330
+uniform mat4 u_light;
+uniform float u_zr;
+in vec3 in_pos;
+out float v_d;
+void main() {
+    vec3 l = (u_light * vec4(in_pos, 1.0)).xyz;
+    v_d = l.z;
+    gl_Position = vec4(l.xy, l.z / u_zr, 1.0);
+}
+"""
+
+_SM_FRAGMENT = """
+#version 330
+in float v_d;
+out vec4 f_d;
+void main() { f_d = vec4(v_d, 0.0, 0.0, 1.0); }
+"""
+
+
+# ---------------------------------------------------------------------------- results
+@dataclass
+class ObjectRender:
+    """The object in one distorted camera image, for the ROI only.
+
+    roi : (u0, v0, u1, v1) pixel box, exclusive ends, clipped to the image; None when
+        neither the object nor its shadow covers any pixel (then the arrays are empty).
+    color : (h, w, 3) float32 linear RGB of the object (straight, not premultiplied;
+        meaningful where alpha > 0).
+    alpha : (h, w) float32 anti-aliased coverage in [0, 1] after occlusion by proxies.
+    depth : (h, w) float32 optical z (m) of the visible object, NaN where alpha == 0.
+    shadow : (h, w) float32 in [0, 1]: fraction of sun light the object blocks on the
+        proxy surfaces visible at that pixel (its non-object part), 0 elsewhere.
+    visible_fraction : visible object coverage / coverage without occluders (in-image).
+    anchor_uv : (2,) distorted pixel of the object's origin (NaN if not projectable).
+    bbox : (u0, v0, u1, v1) float pixel-edge box of the visible mask (alpha > 0.5, or
+        > 0 for sub-pixel objects); NaN if nothing of the object is visible.
+    distance_m : distance from the camera centre to the object's origin (m).
+    motion_uv_per_m : (2,) image motion (px) of the anchor per metre the vehicle travels
+        forward (base +x); composite's motion blur uses it. [addition to the contract]
+    focal_px : the camera's fx at this image's resolution. [addition]
+    pixel_scale : the camera's scale relative to the sensor's real resolution. [addition]
+    """
+
+    roi: tuple[int, int, int, int] | None
+    color: F32
+    alpha: F32
+    depth: F32
+    shadow: F32
+    visible_fraction: float
+    anchor_uv: F64
+    bbox: tuple[float, float, float, float]
+    distance_m: float
+    motion_uv_per_m: F64 = field(default_factory=lambda: np.zeros(2))
+    focal_px: float = 0.0
+    pixel_scale: float = 1.0
+
+
+@dataclass
+class _Targets:
+    size: tuple[int, int]
+    col: moderngl.Texture
+    aux: moderngl.Texture
+    depth: moderngl.Renderbuffer
+    fbo_obj: moderngl.Framebuffer
+    fbo_proxy: moderngl.Framebuffer
+
+    def release(self) -> None:
+        for o in (self.fbo_obj, self.fbo_proxy, self.col, self.aux, self.depth):
+            o.release()
+
+
+@dataclass
+class _Upload:
+    ref: object
+    key: tuple
+    vbo: moderngl.Buffer
+    ibo: moderngl.Buffer
+    vao: moderngl.VertexArray
+    vao_sm: moderngl.VertexArray | None
+
+    def release(self) -> None:
+        for o in (self.vao, self.vao_sm, self.vbo, self.ibo):
+            if o is not None:
+                o.release()
+
+
+def vertex_normals(vertices: F64, faces: NDArray[np.int64]) -> F64:
+    """Area-weighted unit vertex normals (n, 3) of a mesh with outward CCW faces."""
+    tri = vertices[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vn = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(vn, faces[:, k], fn)
+    norm = np.linalg.norm(vn, axis=1, keepdims=True)
+    return np.where(norm > 1e-20, vn / np.maximum(norm, 1e-30), np.array([0.0, 0.0, 1.0]))
+
+
+def _edges(faces: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(3m, 2) edges of the triangles (duplicates kept)."""
+    return np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+
+
+def _normalized_extent(p_opt: F64, edges: NDArray[np.int64], near: float) -> F64 | None:
+    """(2, 2) [[x_min, y_min], [x_max, y_max]] of undistorted x/z, y/z of the geometry in
+    front of the near plane (points with z >= near and edge crossings of z = near), or
+    None if nothing is in front."""
+    z = p_opt[:, 2]
+    front = z >= near
+    pts = [p_opt[front, :2] / z[front, None]]
+    if not np.all(front) and len(edges):
+        za, zb = z[edges[:, 0]], z[edges[:, 1]]
+        cross = (za >= near) != (zb >= near)
+        if np.any(cross):
+            a, b = p_opt[edges[cross, 0]], p_opt[edges[cross, 1]]
+            t = (near - za[cross]) / (zb[cross] - za[cross])
+            q = a + t[:, None] * (b - a)
+            pts.append(q[:, :2] / near)
+    xy = np.concatenate(pts)
+    if len(xy) == 0:
+        return None
+    return np.stack([xy.min(axis=0), xy.max(axis=0)])
+
+
+class ObjectRenderer:
+    """Renders :class:`ObjectMesh` instances into one camera's distorted image.
+
+    Parameters
+    ----------
+    camera : the camera at the resolution of the images to augment.
+    roi : render only the object's region of interest (default) or the whole image.
+    antialias : ``"auto"``, ``"none"`` or ``"ssaa<s>"`` (see the module docstring).
+    """
+
+    def __init__(self, camera: CameraModel, *, roi: bool = True, antialias: str = "auto") -> None:
+        self.camera = camera
+        self.use_roi = bool(roi)
+        self.antialias = antialias
+        self._fixed_ss = self._parse_antialias(antialias)
+        self.setup = camera.render_setup()
+        self.ctx = create_context()
+        self._prog_obj = self.ctx.program(vertex_shader=_OBJ_VERTEX, fragment_shader=_OBJ_FRAGMENT)
+        self._prog_proxy = self.ctx.program(
+            vertex_shader=_PROXY_VERTEX, fragment_shader=_PROXY_FRAGMENT
+        )
+        self._prog_sm = self.ctx.program(vertex_shader=_SM_VERTEX, fragment_shader=_SM_FRAGMENT)
+        self._targets: _Targets | None = None
+        self._sm: tuple[int, moderngl.Texture, moderngl.Renderbuffer, moderngl.Framebuffer] | None
+        self._sm = None
+        self._obj_cache: list[_Upload] = []
+        self._proxy_cache: list[_Upload] = []
+        # Pixel-centre extent of the pinhole render in normalised undistorted coordinates.
+        K = self.setup.K
+        self._pin_lo = np.array([(-0.5 - K[0, 2]) / K[0, 0], (-0.5 - K[1, 2]) / K[1, 1]])
+        self._pin_hi = np.array(
+            [
+                (self.setup.width - 0.5 - K[0, 2]) / K[0, 0],
+                (self.setup.height - 0.5 - K[1, 2]) / K[1, 1],
+            ]
+        )
+
+    # ------------------------------------------------------------------ configuration
+    @staticmethod
+    def _parse_antialias(antialias: str) -> int:
+        """0 for ``auto``, else the fixed supersampling factor."""
+        if antialias == "auto":
+            return 0
+        if antialias == "none":
+            return 1
+        if antialias.startswith("ssaa"):
+            s = int(antialias[4:])
+            if 1 <= s <= 8:
+                return s
+        raise ValueError(f"antialias must be auto, none or ssaa<1..8>, got {antialias!r}")
+
+    def _supersample(self, w: int, h: int) -> int:
+        if self._fixed_ss:
+            return self._fixed_ss
+        s = int(np.floor(np.sqrt(AUTO_SSAA_SAMPLES / max(1, w * h))))
+        return int(np.clip(s, 1, AUTO_SSAA_MAX))
+
+    # ------------------------------------------------------------------ GPU resources
+    def _get_targets(self, w: int, h: int) -> _Targets:
+        t = self._targets
+        if t is not None and t.size[0] >= w and t.size[1] >= h:
+            return t
+        if t is not None:
+            t.release()
+        W = int(np.ceil(max(w, t.size[0] if t else 0) / 128) * 128)
+        H = int(np.ceil(max(h, t.size[1] if t else 0) / 128) * 128)
+        ctx = self.ctx
+        col = ctx.texture((W, H), 4, dtype="f4")
+        aux = ctx.texture((W, H), 4, dtype="f4")
+        depth = ctx.depth_renderbuffer((W, H))
+        fbo_obj = ctx.framebuffer(color_attachments=[col, aux], depth_attachment=depth)
+        fbo_proxy = ctx.framebuffer(color_attachments=[aux], depth_attachment=depth)
+        self._targets = _Targets((W, H), col, aux, depth, fbo_obj, fbo_proxy)
+        log.debug("%s: render targets %dx%d", self.camera.name, W, H)
+        return self._targets
+
+    def _get_shadow_map(self, n: int) -> tuple[moderngl.Texture, moderngl.Framebuffer]:
+        if self._sm is None or self._sm[0] < n:
+            if self._sm is not None:
+                for o in self._sm[1:][::-1]:
+                    o.release()
+            size = int(2 ** np.ceil(np.log2(n)))
+            tex = self.ctx.texture((size, size), 1, dtype="f4")
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            rb = self.ctx.depth_renderbuffer((size, size))
+            fbo = self.ctx.framebuffer(color_attachments=[tex], depth_attachment=rb)
+            self._sm = (size, tex, rb, fbo)
+        return self._sm[1], self._sm[3]
+
+    def _upload_object(self, obj: ObjectMesh) -> _Upload:
+        key = (id(obj), len(obj.vertices), len(obj.faces))
+        for up in self._obj_cache:
+            if up.ref is obj and up.key == key:
+                return up
+        nrm = vertex_normals(obj.vertices, obj.faces)
+        data = np.concatenate(
+            [obj.vertices.astype(np.float32), nrm.astype(np.float32), obj.colors], axis=1
+        )
+        vbo = self.ctx.buffer(np.ascontiguousarray(data, np.float32).tobytes())
+        ibo = self.ctx.buffer(obj.faces.astype(np.uint32).tobytes())
+        vao = self.ctx.vertex_array(
+            self._prog_obj,
+            [(vbo, "3f 3f 3f", "in_pos", "in_nrm", "in_col")],
+            index_buffer=ibo,
+            index_element_size=4,
+        )
+        vao_sm = self.ctx.vertex_array(
+            self._prog_sm, [(vbo, "3f 24x", "in_pos")], index_buffer=ibo, index_element_size=4
+        )
+        up = _Upload(obj, key, vbo, ibo, vao, vao_sm)
+        self._obj_cache.append(up)
+        if len(self._obj_cache) > 4:
+            self._obj_cache.pop(0).release()
+        return up
+
+    def _upload_proxies(self, proxies: ProxyMesh, origin: F64) -> _Upload:
+        key = (id(proxies), len(proxies.vertices), len(proxies.faces), tuple(origin))
+        for up in self._proxy_cache:
+            if up.ref is proxies and up.key == key:
+                return up
+        v = (proxies.vertices - origin).astype(np.float32)
+        vbo = self.ctx.buffer(v.tobytes())
+        ibo = self.ctx.buffer(proxies.faces.astype(np.uint32).tobytes())
+        vao = self.ctx.vertex_array(
+            self._prog_proxy, [(vbo, "3f", "in_pos")], index_buffer=ibo, index_element_size=4
+        )
+        up = _Upload(proxies, key, vbo, ibo, vao, None)
+        self._proxy_cache.append(up)
+        if len(self._proxy_cache) > 2:
+            self._proxy_cache.pop(0).release()
+        return up
+
+    def close(self) -> None:
+        """Release this renderer's GPU objects (the shared context stays)."""
+        for up in self._obj_cache + self._proxy_cache:
+            up.release()
+        self._obj_cache.clear()
+        self._proxy_cache.clear()
+        if self._targets is not None:
+            self._targets.release()
+            self._targets = None
+        if self._sm is not None:
+            for o in self._sm[1:][::-1]:
+                o.release()
+            self._sm = None
+        for p in (self._prog_obj, self._prog_proxy, self._prog_sm):
+            p.release()
+
+    # ------------------------------------------------------------------ geometry helpers
+    def _shadow_points_obj(self, obj: ObjectMesh, sun_obj: F64, up_obj: F64) -> F64:
+        """(8, 3) the object's bounding-box corners cast along the sun onto the plane
+        through its origin normal to world up (object frame), length-capped."""
+        b = obj.bounds
+        corners = np.array(
+            [[b[i, 0], b[j, 1], b[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+        )
+        h = corners @ up_obj
+        height = max(float(h.max()), 1e-3)
+        s_up = float(sun_obj @ up_obj)
+        # Horizontal shift per metre of height, capped.
+        horiz = sun_obj - s_up * up_obj
+        length = min(1.0 / max(s_up, 1e-6), SHADOW_MAX_LENGTH / max(np.linalg.norm(horiz), 1e-9))
+        return corners - np.clip(h, 0.0, height)[:, None] * sun_obj[None] * length
+
+    def _roi_from_extent(self, ext: F64) -> tuple[tuple[int, int, int, int], F64] | None:
+        """Normalised extent -> (distorted ROI, pinhole rectangle (2, 2) in normalised)."""
+        lo = np.maximum(ext[0], self._pin_lo)
+        hi = np.minimum(ext[1], self._pin_hi)
+        if np.any(lo > hi):
+            return None
+        n = _BOUNDARY_SAMPLES
+        t = np.linspace(0.0, 1.0, n)
+        xs = lo[0] + t * (hi[0] - lo[0])
+        ys = lo[1] + t * (hi[1] - lo[1])
+        border = np.concatenate(
+            [
+                np.stack([xs, np.full(n, lo[1])], 1),
+                np.stack([xs, np.full(n, hi[1])], 1),
+                np.stack([np.full(n, lo[0]), ys], 1),
+                np.stack([np.full(n, hi[0]), ys], 1),
+            ]
+        )
+        r = np.hypot(border[:, 0], border[:, 1])
+        r_max = min(self.camera.r_valid, TOL.max_radius) * (1.0 - 1e-9)
+        border *= np.minimum(1.0, r_max / np.maximum(r, 1e-300))[:, None]
+        uv = self.camera.distort(border) @ self.camera.K[:2, :2].T + self.camera.K[:2, 2]
+        m = ROI_MARGIN_PX
+        u0 = int(np.floor(uv[:, 0].min())) - m
+        v0 = int(np.floor(uv[:, 1].min())) - m
+        u1 = int(np.ceil(uv[:, 0].max())) + 1 + m
+        v1 = int(np.ceil(uv[:, 1].max())) + 1 + m
+        u0, u1 = max(u0, 0), min(u1, self.camera.width)
+        v0, v1 = max(v0, 0), min(v1, self.camera.height)
+        if u0 >= u1 or v0 >= v1:
+            return None
+        return (u0, v0, u1, v1), np.stack([lo, hi])
+
+    # ------------------------------------------------------------------ rendering
+    def render(
+        self,
+        obj: ObjectMesh,
+        T_world_obj: ArrayLike,
+        T_world_base: ArrayLike,
+        proxies: ProxyMesh | None = None,
+        light: Lighting | None = None,
+        near: float = 0.05,
+    ) -> ObjectRender:
+        """Render ``obj`` at ``T_world_obj`` (4, 4) from vehicle pose ``T_world_base`` (4, 4)
+        (the pose at THIS camera's timestamp), occluded by and casting shadows on
+        ``proxies`` (world frame), lit by ``light`` (default: ``Lighting()``).
+
+        Returns
+        -------
+        ObjectRender in the distorted image of ``self.camera`` (ROI only).
+        """
+        cam = self.camera
+        light = light if light is not None else Lighting()
+        T_world_obj = np.asarray(T_world_obj, dtype=np.float64)
+        T_world_base = np.asarray(T_world_base, dtype=np.float64)
+        if not (np.all(np.isfinite(T_world_obj)) and np.all(np.isfinite(T_world_base))):
+            raise ValueError("poses must be finite")
+        if not near > 0:
+            raise ValueError(f"near must be > 0, got {near}")
+        T_world_opt = T_world_base @ cam.T_base_opt
+        T_opt_world = invert_T(T_world_opt)
+        T_opt_obj = T_opt_world @ T_world_obj
+        T_obj_opt = invert_T(T_opt_obj)
+        R_obj_world = T_world_obj[:3, :3].T
+        sun_obj = R_obj_world @ light.sun_dir_world
+        up_obj = R_obj_world @ np.array([0.0, 0.0, 1.0])
+
+        # Anchor, distance, image motion (float64, the camera model itself).
+        p_opt_origin = T_opt_obj[:3, 3]
+        anchor_uv = cam.project_optical(p_opt_origin)[0][0]
+        distance = float(np.linalg.norm(p_opt_origin))
+        motion = np.zeros(2)
+        if np.all(np.isfinite(anchor_uv)):
+            step = 0.01  # vehicle forward by 1 cm: the object moves by -1 cm along base x
+            d_opt = cam.T_opt_base[:3, :3] @ np.array([-step, 0.0, 0.0])
+            uv2 = cam.project_optical(p_opt_origin + d_opt)[0][0]
+            if np.all(np.isfinite(uv2)):
+                motion = (uv2 - anchor_uv) / step
+        empty = self._empty(anchor_uv, distance, motion)
+
+        # Extent: object (+ ground shadow when proxies can receive it).
+        p_opt = obj.vertices @ T_opt_obj[:3, :3].T + T_opt_obj[:3, 3]
+        shadows = proxies is not None and len(proxies.faces) > 0 and light.casts_shadows
+        pts, edges = p_opt, _edges(obj.faces)
+        if shadows:
+            sp_obj = self._shadow_points_obj(obj, sun_obj, up_obj)
+            b = obj.bounds
+            corners = np.array(
+                [[b[i, 0], b[j, 1], b[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+            )
+            extra = np.concatenate([corners, sp_obj]) @ T_opt_obj[:3, :3].T + T_opt_obj[:3, 3]
+            n0 = len(pts)
+            pts = np.concatenate([pts, extra])
+            pairs = np.stack([np.arange(8), np.arange(8, 16)], 1) + n0
+            edges = np.concatenate([edges, pairs])
+        if self.use_roi:
+            ext = _normalized_extent(pts, edges, near)
+            if ext is None:
+                return empty
+        else:
+            ext = np.stack([self._pin_lo, self._pin_hi])
+        got = self._roi_from_extent(ext)
+        if got is None:
+            return empty
+        if not self.use_roi:
+            got = ((0, 0, cam.width, cam.height), got[1])
+        (u0, v0, u1, v1), rect = got
+
+        # Pinhole sub-window read by the ROI's remap (and covering the object's rectangle).
+        K_r = self.setup.K
+        mx = self.setup.map_x[v0:v1, u0:u1]
+        my = self.setup.map_y[v0:v1, u0:u1]
+        ok = (mx >= 0) & (my >= 0)
+        if not np.any(ok):
+            return empty
+        pu0 = int(np.floor(max(mx[ok].min(), rect[0, 0] * K_r[0, 0] + K_r[0, 2]))) - 2
+        pu1 = int(np.ceil(min(mx[ok].max(), rect[1, 0] * K_r[0, 0] + K_r[0, 2]))) + 3
+        pv0 = int(np.floor(max(my[ok].min(), rect[0, 1] * K_r[1, 1] + K_r[1, 2]))) - 2
+        pv1 = int(np.ceil(min(my[ok].max(), rect[1, 1] * K_r[1, 1] + K_r[1, 2]))) + 3
+        pu0, pv0 = max(pu0, 0), max(pv0, 0)
+        pu1, pv1 = min(pu1, self.setup.width), min(pv1, self.setup.height)
+        if pu0 >= pu1 or pv0 >= pv1:
+            return empty
+        pw, ph = pu1 - pu0, pv1 - pv0
+        s = self._supersample(pw, ph)
+        K_s = K_r.copy()
+        K_s[0, 2] = s * (K_r[0, 2] - pu0 + 0.5) - 0.5
+        K_s[1, 2] = s * (K_r[1, 2] - pv0 + 0.5) - 0.5
+        K_s[0, 0] *= s
+        K_s[1, 1] *= s
+        W_s, H_s = pw * s, ph * s
+
+        # Near/far: everything in front of the object's far side and its shadow.
+        z_far = float(max(pts[:, 2].max(), near * 10.0))
+        far = max(2.0 * z_far + 10.0, near * 100.0)
+        P = gl_projection(K_s, W_s, H_s, near, far)
+        log_far = float(np.log(far / near))
+
+        # Shadow map (object frame, orthographic along the sun).
+        light_obj = np.eye(4)
+        sm_tex = None
+        sm_size = 1
+        if light.casts_shadows:
+            light_obj, sm_tex, sm_size, _, texel = self._render_shadow_map(
+                obj, sun_obj, distance, obj_up=up_obj
+            )
+        else:
+            texel = 0.0
+
+        tg = self._get_targets(W_s, H_s)
+        vp = (0, 0, W_s, H_s)
+        ctx = self.ctx
+        ctx.enable(moderngl.DEPTH_TEST)
+        ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
+        ctx.depth_func = "<"
+        fbo = tg.fbo_obj
+        fbo.use()
+        fbo.viewport = vp
+        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=vp)
+
+        up_o = self._upload_object(obj)
+        pg = self._prog_obj
+        pg["u_mvp"].write((P @ T_opt_obj).T.astype("f4").tobytes())
+        pg["u_light"].write(light_obj.T.astype("f4").tobytes())
+        pg["u_sun"].value = tuple(sun_obj)
+        pg["u_up"].value = tuple(up_obj)
+        pg["u_cam"].value = tuple(T_obj_opt[:3, 3])
+        pg["u_sun_rgb"].value = (light.sun_intensity,) * 3
+        pg["u_sky"].value = tuple(light.sky_rgb)
+        pg["u_ground"].value = tuple(light.ambient_rgb)
+        pg["u_near"].value = near
+        pg["u_log_far"].value = log_far
+        pg["u_self_bias"].value = 2.0 * texel
+        self._set_shadow_uniforms(pg, sm_tex, sm_size)
+        up_o.vao.render(moderngl.TRIANGLES)
+
+        if proxies is not None and len(proxies.faces):
+            origin = np.round(T_world_obj[:3, 3] / _PROXY_ORIGIN_GRID) * _PROXY_ORIGIN_GRID
+            T_world_origin = np.eye(4)
+            T_world_origin[:3, 3] = origin
+            up_p = self._upload_proxies(proxies, origin)
+            pp = self._prog_proxy
+            T_obj_origin = invert_T(T_world_obj) @ T_world_origin
+            pp["u_mvp"].write((P @ T_opt_world @ T_world_origin).T.astype("f4").tobytes())
+            pp["u_light"].write((light_obj @ T_obj_origin).T.astype("f4").tobytes())
+            pp["u_near"].value = near
+            pp["u_log_far"].value = log_far
+            pp["u_bias"].value = PROXY_DEPTH_BIAS
+            self._set_shadow_uniforms(pp, sm_tex, sm_size if shadows else 0)
+            fbo_p = tg.fbo_proxy
+            fbo_p.use()
+            fbo_p.viewport = vp
+            up_p.vao.render(moderngl.TRIANGLES)
+
+        col = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=0, dtype="f4"), "f4")
+        aux = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=1, dtype="f4"), "f4")
+        col = col.reshape(H_s, W_s, 4)
+        aux = aux.reshape(H_s, W_s, 4)
+        return self._resolve(col, aux, s, (pu0, pv0), (u0, v0, u1, v1), anchor_uv, distance, motion)
+
+    def _set_shadow_uniforms(
+        self, prog: moderngl.Program, tex: moderngl.Texture | None, size: int
+    ) -> None:
+        use = tex is not None and size > 0
+        prog["u_use_shadow"].value = 1 if use else 0
+        prog["u_sm_size"].value = (float(max(size, 1)),) * 2
+        if tex is not None:
+            tex.use(0)
+        prog["u_shadow"].value = 0
+
+    def _render_shadow_map(
+        self, obj: ObjectMesh, sun_obj: F64, distance: float, obj_up: F64
+    ) -> tuple[F64, moderngl.Texture, int, float, float]:
+        """Orthographic depth of the object along the sun, in the object frame.
+
+        Returns (M (4, 4) object -> (x_ndc, y_ndc, depth m), texture, size, depth range,
+        texel size m). Texels are about the camera's pixel footprint at the object.
+        """
+        w = -sun_obj  # light travel direction
+        a = np.cross(w, obj_up if abs(w @ obj_up) < 0.99 else np.array([1.0, 0.0, 0.0]))
+        a /= np.linalg.norm(a)
+        b = np.cross(w, a)
+        R = np.stack([a, b, w])
+        c = 0.5 * (obj.bounds[0] + obj.bounds[1])
+        q = (obj.vertices - c) @ R.T
+        half = np.abs(q[:, :2]).max(axis=0) * 1.02 + 1e-3
+        footprint = max(distance, 0.5) / self.camera.fx
+        n = int(np.clip(np.ceil(2.0 * half.max() / footprint), SHADOW_MAP_MIN, SHADOW_MAP_MAX))
+        tex, fbo = self._get_shadow_map(n)
+        size = tex.size[0]
+        texel = 2.0 * float(half.max()) / size
+        zr = float(np.abs(q[:, 2]).max() * 1.01 + 1e-3)
+        M = np.eye(4)
+        M[0, :3] = a / half.max()
+        M[1, :3] = b / half.max()
+        M[2, :3] = w
+        M[:3, 3] = -(np.stack([a / half.max(), b / half.max(), w]) @ c)
+        fbo.use()
+        fbo.viewport = (0, 0, size, size)
+        fbo.clear(1e9, 0.0, 0.0, 0.0, depth=1.0)
+        self._prog_sm["u_light"].write(M.T.astype("f4").tobytes())
+        self._prog_sm["u_zr"].value = zr
+        up = self._upload_object(obj)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE)
+        up.vao_sm.render(moderngl.TRIANGLES)
+        return M, tex, size, zr, texel
+
+    def _resolve(
+        self,
+        col: F32,
+        aux: F32,
+        s: int,
+        p0: tuple[int, int],
+        roi: tuple[int, int, int, int],
+        anchor_uv: F64,
+        distance: float,
+        motion: F64,
+    ) -> ObjectRender:
+        """Supersamples -> pinhole pixels -> distorted ROI layers."""
+        obj = col[..., 3]
+        vis = obj * (1.0 - aux[..., 1])  # covered by the object and not by a proxy
+        layers = np.empty((*col.shape[:2], 8), np.float32)
+        np.multiply(col[..., :3], vis[..., None], out=layers[..., :3])
+        layers[..., 3] = vis
+        np.multiply(aux[..., 0], vis, out=layers[..., 4])
+        np.subtract(1.0, vis, out=layers[..., 6])
+        np.multiply(aux[..., 2], layers[..., 6], out=layers[..., 5])
+        layers[..., 7] = obj
+        if s > 1:  # box average of the s x s supersamples (exact for integer factors)
+            h, w = col.shape[0] // s, col.shape[1] // s
+            layers = cv2.resize(layers, (w, h), interpolation=cv2.INTER_AREA)
+        u0, v0, u1, v1 = roi
+        mx = self.setup.map_x[v0:v1, u0:u1] - np.float32(p0[0])
+        my = self.setup.map_y[v0:v1, u0:u1] - np.float32(p0[1])
+        bad = (self.setup.map_x[v0:v1, u0:u1] < 0) | (self.setup.map_y[v0:v1, u0:u1] < 0)
+        if np.any(bad):
+            mx = np.where(bad, np.float32(-1e4), mx)
+            my = np.where(bad, np.float32(-1e4), my)
+        out = cv2.remap(
+            np.ascontiguousarray(layers),
+            mx,
+            my,
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
+        alpha = np.clip(out[..., 3], 0.0, 1.0)
+        alpha[alpha < 1e-5] = 0.0
+        has = alpha > 0
+        color = np.zeros((*out.shape[:2], 3), np.float32)
+        color[has] = out[has, :3] / alpha[has, None]
+        depth = np.full(alpha.shape, np.nan, np.float32)
+        depth[has] = out[has, 4] / alpha[has]
+        shadow = np.zeros(alpha.shape, np.float32)
+        nv = out[..., 6] > 1e-5
+        shadow[nv] = np.clip(out[nv, 5] / out[nv, 6], 0.0, 1.0)
+        shadow[shadow < 1e-4] = 0.0
+        unocc = float(out[..., 7].sum())
+        if not has.any() and not shadow.any():
+            return self._empty(anchor_uv, distance, motion)
+        vis_frac = float(alpha.sum() / unocc) if unocc > 1e-9 else 0.0
+        bbox = (np.nan, np.nan, np.nan, np.nan)
+        sel = alpha > 0.5 if np.any(alpha > 0.5) else has
+        if sel.any():
+            vs, us = np.nonzero(sel)
+            bbox = (
+                float(u0 + us.min() - 0.5),
+                float(v0 + vs.min() - 0.5),
+                float(u0 + us.max() + 0.5),
+                float(v0 + vs.max() + 0.5),
+            )
+        return ObjectRender(
+            roi=roi,
+            color=color,
+            alpha=alpha,
+            depth=depth,
+            shadow=shadow,
+            visible_fraction=min(vis_frac, 1.0),
+            anchor_uv=anchor_uv,
+            bbox=bbox,
+            distance_m=distance,
+            motion_uv_per_m=motion,
+            focal_px=self.camera.fx,
+            pixel_scale=self.camera.scale,
+        )
+
+    def _empty(self, anchor_uv: F64, distance: float, motion: F64) -> ObjectRender:
+        z = np.zeros((0, 0), np.float32)
+        return ObjectRender(
+            roi=None,
+            color=np.zeros((0, 0, 3), np.float32),
+            alpha=z,
+            depth=z.copy(),
+            shadow=z.copy(),
+            visible_fraction=0.0,
+            anchor_uv=anchor_uv,
+            bbox=(np.nan, np.nan, np.nan, np.nan),
+            distance_m=distance,
+            motion_uv_per_m=motion,
+            focal_px=self.camera.fx,
+            pixel_scale=self.camera.scale,
+        )
