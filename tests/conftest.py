@@ -86,3 +86,6 @@ def tiny_sequence(tmp_path: Path, _real_raw: dict) -> Callable[..., Path]:
         return folder
 
     return make
+
+
+pytest_plugins = ["tests.conftest_service"]

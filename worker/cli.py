@@ -381,6 +381,86 @@ def cmd_prepare(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- keys
+def _add_keys(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("keys", help="manage API keys of the job service")
+    keys = p.add_subparsers(dest="keys_command", required=True)
+    c = keys.add_parser("create", help="create a key and print its secret (shown once)")
+    c.add_argument("name", help="who or what the key is for")
+    c.set_defaults(func=cmd_keys_create)
+    ls = keys.add_parser("list", help="list keys (id, prefix, name, revoked)")
+    ls.set_defaults(func=cmd_keys_list)
+    r = keys.add_parser("revoke", help="revoke a key by id")
+    r.add_argument("key_id", type=int)
+    r.set_defaults(func=cmd_keys_revoke)
+
+
+def cmd_keys_create(args: argparse.Namespace) -> int:
+    from worker.jobs.db import session_scope
+    from worker.jobs.keys import create_api_key
+    from worker.jobs.settings import get_settings
+
+    settings = get_settings()
+    try:
+        with session_scope(settings) as session:
+            row, secret = create_api_key(
+                session=session,
+                name=args.name,
+                pepper=settings.api_key_pepper.get_secret_value(),
+            )
+            key_id = row.id
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+    print(f"key {key_id} ({args.name}); the secret is shown only now:", file=sys.stderr)  # noqa: T201
+    print(secret)  # noqa: T201 - CLI output
+    return 0
+
+
+def cmd_keys_list(args: argparse.Namespace) -> int:
+    from sqlalchemy import select
+
+    from worker.jobs.db import session_scope
+    from worker.jobs.models import ApiKey
+    from worker.jobs.settings import get_settings
+
+    with session_scope(get_settings()) as session:
+        for k in session.scalars(select(ApiKey).order_by(ApiKey.id)):
+            state = "revoked" if k.revoked else "active"
+            print(f"{k.id:>5}  {k.prefix}...  {state:<8} {k.name}")  # noqa: T201 - CLI output
+    return 0
+
+
+def cmd_keys_revoke(args: argparse.Namespace) -> int:
+    from worker.jobs.db import session_scope
+    from worker.jobs.keys import revoke_api_key
+    from worker.jobs.settings import get_settings
+
+    with session_scope(get_settings()) as session:
+        if not revoke_api_key(session=session, key_id=args.key_id):
+            raise CliError(f"no key with id {args.key_id}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- migrate
+def _add_migrate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "migrate",
+        help="apply the database migrations (alembic upgrade head): the prestart step",
+    )
+    p.add_argument("--revision", default="head")
+    p.set_defaults(func=cmd_migrate)
+
+
+def cmd_migrate(args: argparse.Namespace) -> int:
+    from worker.jobs.migrate import upgrade
+    from worker.jobs.settings import get_settings
+
+    url = str(get_settings().database_url)
+    upgrade(database_url=url, revision=args.revision)
+    log.info("database at revision %s", args.revision)
+    return 0
+
+
 # ---------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -393,6 +473,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_info(sub)
     _add_demo(sub)
     _add_prepare(sub)
+    _add_keys(sub)
+    _add_migrate(sub)
     return parser
 
 

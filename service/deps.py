@@ -1,0 +1,85 @@
+"""Dependencies of the routes, as ``Annotated`` aliases: settings, DB session, store,
+the job dispatcher and the authenticated API key (with its rate limit)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from fastapi import Depends, Request, Security
+from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.errors import TooManyRequests, Unauthorized
+from service.ratelimit import TokenBuckets
+from worker.jobs.keys import find_api_key
+from worker.jobs.models import ApiKey, JobState
+from worker.jobs.queue import enqueue_job, request_cancel
+from worker.jobs.settings import Settings
+from worker.jobs.store import ObjectStore
+
+
+@dataclass
+class Dispatcher:
+    """Hands committed jobs to the workers and cancels them (``worker.jobs.queue``)."""
+
+    sessions: sessionmaker[Session]
+    celery_app: Any = None  # None: worker.jobs.celery_app, imported on first use
+
+    def enqueue(self, job_id: str) -> None:
+        enqueue_job(job_id, sessions=self.sessions, app=self.celery_app)
+
+    def cancel(self, job_id: str) -> JobState | None:
+        return request_cancel(job_id, sessions=self.sessions, app=self.celery_app)
+
+
+def _settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def _session(request: Request) -> Iterator[Session]:
+    with request.app.state.sessions() as session:
+        yield session
+
+
+def _store(request: Request) -> ObjectStore:
+    return request.app.state.store
+
+
+def _dispatcher(request: Request) -> Dispatcher:
+    return request.app.state.dispatcher
+
+
+SettingsDep = Annotated[Settings, Depends(_settings)]
+SessionDep = Annotated[Session, Depends(_session)]
+StoreDep = Annotated[ObjectStore, Depends(_store)]
+DispatcherDep = Annotated[Dispatcher, Depends(_dispatcher)]
+
+_bearer = HTTPBearer(auto_error=False, description="API key as `Authorization: Bearer <key>`")
+_header = APIKeyHeader(name="X-API-Key", auto_error=False, description="API key")
+
+
+def _current_key(
+    request: Request,
+    session: SessionDep,
+    settings: SettingsDep,
+    bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)] = None,
+    header_key: Annotated[str | None, Security(_header)] = None,
+) -> ApiKey:
+    secret = bearer.credentials if bearer is not None else header_key
+    if not secret:
+        raise Unauthorized("missing API key: send 'Authorization: Bearer <key>' or 'X-API-Key'")
+    key = find_api_key(
+        session=session, secret=secret, pepper=settings.api_key_pepper.get_secret_value()
+    )
+    if key is None:
+        raise Unauthorized("invalid or revoked API key")
+    limiter: TokenBuckets = request.app.state.limiter
+    wait = limiter.take(key.id)
+    if wait > 0:
+        raise TooManyRequests("rate limit exceeded for this API key", retry_after_s=wait)
+    return key
+
+
+CurrentKey = Annotated[ApiKey, Depends(_current_key)]

@@ -1,0 +1,104 @@
+"""Errors the service functions raise, and how the API turns them into responses.
+
+Service functions raise :class:`ServiceError` subclasses (no HTTP knowledge in them
+beyond a status code); the handlers installed by :func:`install_handlers` write
+``{"detail": "..."}`` or, for 422, FastAPI's ``{"detail": [{"loc", "msg", "type"}]}``.
+Anything else becomes a plain 500 without a stack trace (logged on the server).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+log = logging.getLogger(__name__)
+
+
+class ServiceError(Exception):
+    status_code = 400
+
+    def __init__(self, message: str, *, headers: dict[str, str] | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.headers = headers
+
+    def body(self) -> dict[str, Any]:
+        return {"detail": self.message}
+
+
+class BadRequest(ServiceError):
+    status_code = 400
+
+
+class NotFound(ServiceError):
+    status_code = 404
+
+
+class Conflict(ServiceError):
+    status_code = 409
+
+
+class PayloadTooLarge(ServiceError):
+    status_code = 413
+
+
+class TooManyRequests(ServiceError):
+    status_code = 429
+
+    def __init__(self, message: str, *, retry_after_s: float) -> None:
+        super().__init__(message, headers={"Retry-After": str(max(1, round(retry_after_s + 0.5)))})
+
+
+class Invalid(ServiceError):
+    """422 naming the field: ``loc`` as in FastAPI's validation errors."""
+
+    status_code = 422
+
+    def __init__(self, message: str, *, loc: tuple[str | int, ...] = ("body",)) -> None:
+        super().__init__(message)
+        self.errors = [{"loc": list(loc), "msg": message, "type": "value_error"}]
+
+    @classmethod
+    def many(cls, errors: list[tuple[tuple[str | int, ...], str]]) -> Invalid:
+        exc = cls(errors[0][1], loc=errors[0][0])
+        exc.errors = [{"loc": list(loc), "msg": msg, "type": "value_error"} for loc, msg in errors]
+        return exc
+
+    def body(self) -> dict[str, Any]:
+        return {"detail": self.errors}
+
+
+class Unauthorized(ServiceError):
+    status_code = 401
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, headers={"WWW-Authenticate": "Bearer"})
+
+
+def _plain_errors(errors: Any) -> list[dict[str, Any]]:
+    """loc/msg/type of each validation error; the input is not echoed back (it may be huge,
+    or hold NaN, which JSON cannot carry)."""
+    out = []
+    for e in errors:
+        loc = [x if isinstance(x, int) else str(x) for x in e.get("loc", ())]
+        out.append({"loc": loc, "msg": str(e.get("msg", "invalid")), "type": str(e.get("type"))})
+    return out
+
+
+def install_handlers(app: FastAPI) -> None:
+    @app.exception_handler(RequestValidationError)
+    async def _invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        return JSONResponse({"detail": _plain_errors(exc.errors())}, status_code=422)
+
+    @app.exception_handler(ServiceError)
+    async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
+        return JSONResponse(exc.body(), status_code=exc.status_code, headers=exc.headers)
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        return JSONResponse({"detail": "internal error"}, status_code=500)

@@ -1,0 +1,1 @@
+"""Keyword-only service functions: the logic behind the routes, tested directly."""

@@ -1,0 +1,50 @@
+"""``osdar-ar migrate`` and ``osdar-ar keys``: the prestart step and the key helper."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from sqlalchemy import select
+
+from worker.cli import main
+from worker.jobs.settings import get_settings
+
+
+@pytest.fixture
+def env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
+    for name in ("DATABASE_URL", "OSDAR_AR_DATABASE_URL"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("OSDAR_AR_DATA_DIR", str(tmp_path))
+    get_settings.cache_clear()
+    yield tmp_path
+    get_settings.cache_clear()
+
+
+def test_migrate_then_create_list_revoke_a_key(env: Path, capsys: pytest.CaptureFixture) -> None:
+    from worker.jobs.db import session_scope
+    from worker.jobs.keys import find_api_key
+    from worker.jobs.models import ApiKey
+
+    assert main(["migrate"]) == 0
+    assert (env / "osdar-ar.db").is_file()
+    assert main(["migrate"]) == 0  # idempotent
+    capsys.readouterr()
+    assert main(["keys", "create", "ci robot"]) == 0
+    out = capsys.readouterr()
+    secret = out.out.strip()
+    assert secret.startswith("oar_") and len(secret) > 40 and "shown only now" in out.err
+    settings = get_settings()
+    pepper = settings.api_key_pepper.get_secret_value()
+    with session_scope(settings) as s:
+        (row,) = s.scalars(select(ApiKey)).all()
+        assert row.name == "ci robot" and secret not in row.key_hash
+        assert find_api_key(session=s, secret=secret, pepper=pepper) is not None
+    assert main(["keys", "list"]) == 0
+    assert "ci robot" in capsys.readouterr().out
+    assert main(["keys", "revoke", str(row.id)]) == 0
+    with session_scope(settings) as s:
+        assert find_api_key(session=s, secret=secret, pepper=pepper) is None
+    assert main(["keys", "revoke", "999"]) == 2
+    assert main(["keys", "create", " "]) == 2

@@ -1,0 +1,151 @@
+"""Handing jobs to the workers, and asking them to stop.
+
+The contract with the Celery side (``worker/jobs/celery_app.py``, ``tasks.py``): the API
+commits the new job row (PENDING), then calls :func:`enqueue_job`, which sends task
+``TASK_RUN_JOB`` with the job id (the task id is the job id, so it can be revoked) and
+moves the row PENDING -> QUEUED. The state change is conditional: a worker that already
+picked the job up (RUNNING) is never set back to QUEUED. A job whose send failed stays
+PENDING with an event saying why; :func:`requeue_pending` sends those again.
+"""
+
+from __future__ import annotations
+
+import logging
+from datetime import timedelta
+from typing import TYPE_CHECKING, Any
+
+from sqlalchemy import select, update
+
+from worker.jobs.models import Job, JobEvent, JobState, utcnow
+
+if TYPE_CHECKING:
+    from sqlalchemy.orm import Session, sessionmaker
+
+    from worker.jobs.settings import Settings
+
+log = logging.getLogger(__name__)
+
+#: The Celery task that runs a job (a plain function in worker/jobs/runner.py).
+TASK_RUN_JOB = "osdar_ar.run_job"
+
+
+def _celery_app(app: Any) -> Any:
+    if app is not None:
+        return app
+    from worker.jobs.celery_app import celery_app  # lazily: Celery is the workers' side
+
+    return celery_app
+
+
+def _sessions(settings: Settings | None, sessions: sessionmaker[Session] | None) -> Any:
+    if sessions is not None:
+        return sessions
+    from worker.jobs.db import get_sessionmaker
+
+    return get_sessionmaker(settings)
+
+
+def enqueue_job(
+    job_id: str,
+    *,
+    settings: Settings | None = None,
+    sessions: sessionmaker[Session] | None = None,
+    app: Any = None,
+) -> None:
+    """Send the job to the workers and mark it QUEUED (call after the row's commit).
+
+    Raises whatever the broker raised when the message could not be sent; the job then
+    stays PENDING with an ``enqueue_failed`` event.
+    """
+    make_session = _sessions(settings, sessions)
+    try:
+        _celery_app(app).send_task(TASK_RUN_JOB, args=[job_id], task_id=job_id)
+    except Exception as exc:
+        log.warning("job %s: enqueue failed: %s", job_id, exc)
+        with make_session.begin() as session:
+            session.add(JobEvent(job_id=job_id, kind="enqueue_failed", message=str(exc)[:2000]))
+        raise
+    with make_session.begin() as session:
+        moved = session.execute(
+            update(Job)
+            .where(Job.id == job_id, Job.state == JobState.PENDING)
+            .values(state=JobState.QUEUED, updated_at=utcnow())
+        ).rowcount
+        session.add(JobEvent(job_id=job_id, kind="queued" if moved else "sent"))
+
+
+def request_cancel(
+    job_id: str,
+    *,
+    settings: Settings | None = None,
+    sessions: sessionmaker[Session] | None = None,
+    app: Any = None,
+    revoke: bool = True,
+) -> JobState | None:
+    """Ask a job to stop; returns its state afterwards (None if there is no such job).
+
+    PENDING/QUEUED jobs become CANCELLED at once (conditionally: a worker that starts it
+    meanwhile sees ``cancel_requested`` and stops at its next check). RUNNING jobs get
+    ``cancel_requested``; the worker stops at its next stage or frame and writes
+    CANCELLED. The broker message is revoked too (best effort).
+    """
+    make_session = _sessions(settings, sessions)
+    now = utcnow()
+    with make_session.begin() as session:
+        job = session.get(Job, job_id)
+        if job is None:
+            return None
+        if job.state.terminal:
+            return job.state
+        session.execute(
+            update(Job).where(Job.id == job_id).values(cancel_requested=True, updated_at=now)
+        )
+        moved = session.execute(
+            update(Job)
+            .where(Job.id == job_id, Job.state.in_([JobState.PENDING, JobState.QUEUED]))
+            .values(state=JobState.CANCELLED, finished_at=now, updated_at=now)
+        ).rowcount
+        session.add(
+            JobEvent(
+                job_id=job_id,
+                kind="cancelled" if moved else "cancel_requested",
+                attempt=job.attempt,
+            )
+        )
+    if revoke:
+        try:
+            _celery_app(app).control.revoke(job_id)
+        except Exception as exc:  # the DB flag is what the worker obeys
+            log.warning("job %s: revoke failed (the cancel flag stands): %s", job_id, exc)
+    with make_session() as session:
+        state = session.scalar(select(Job.state).where(Job.id == job_id))
+    return state
+
+
+def requeue_pending(
+    *,
+    older_than_s: float = 60.0,
+    settings: Settings | None = None,
+    sessions: sessionmaker[Session] | None = None,
+    app: Any = None,
+) -> list[str]:
+    """Send again the jobs left PENDING (their first send failed); returns their ids."""
+    make_session = _sessions(settings, sessions)
+    cutoff = utcnow() - timedelta(seconds=older_than_s)
+    with make_session() as session:
+        ids = list(
+            session.scalars(
+                select(Job.id).where(Job.state == JobState.PENDING, Job.created_at < cutoff)
+            )
+        )
+    sent = []
+    for job_id in ids:
+        try:
+            enqueue_job(job_id, sessions=make_session, app=app)
+            sent.append(job_id)
+        except Exception as exc:
+            log.warning("requeue of %s failed: %s", job_id, exc)
+    return sent
+
+
+__all__ = ["TASK_RUN_JOB", "enqueue_job", "request_cancel", "requeue_pending"]

@@ -1,0 +1,141 @@
+"""The one settings class of the job service and its workers (pydantic-settings).
+
+Every field reads ``OSDAR_AR_<FIELD>`` from the environment; the deployment-level ones also
+read their plain names (``DATABASE_URL``, ``BROKER_URL``, ``STORE_URL``,
+``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_KEY``, ``S3_ENDPOINT_URL``). Derived defaults are
+filled in one place (:meth:`Settings._derived`): everything lives under ``data_dir`` unless
+told otherwise, so the embedded default (SQLite, a SQLite broker, a file-system store) needs
+no server. ``environment="prod"`` refuses the default secret and SQLite.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import AliasChoices, Field, SecretStr, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+#: The pepper used when none is configured; refused in production.
+DEFAULT_PEPPER = "osdar-ar-dev-pepper-not-secret"
+GiB = 1024**3
+MiB = 1024**2
+
+
+def _env(name: str, *plain: str) -> AliasChoices:
+    """OSDAR_AR_<NAME> first, then the plain env names (init kwargs use the field name)."""
+    return AliasChoices(f"OSDAR_AR_{name.upper()}", *plain)
+
+
+class Settings(BaseSettings):
+    """Configuration of the API and the workers (one instance per process)."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="OSDAR_AR_", extra="ignore", populate_by_name=True, validate_default=True
+    )
+
+    environment: Literal["dev", "prod"] = "dev"
+    data_dir: Path = Path("./var")
+
+    # --- where things live (None: derived from data_dir) ------------------------------
+    database_url: str | None = Field(None, validation_alias=_env("database_url", "DATABASE_URL"))
+    broker_url: str | None = Field(None, validation_alias=_env("broker_url", "BROKER_URL"))
+    store_url: str | None = Field(None, validation_alias=_env("store_url", "STORE_URL"))
+    cache_dir: Path | None = None  # preparation cache of the workers
+    sequences_dir: Path | None = None  # extracted sequence uploads (workers must read it)
+    #: Folders under which a registered sequence path must lie; empty = anywhere (dev only).
+    sequence_roots: list[Path] = Field(default_factory=list)
+
+    # --- S3-compatible object store ----------------------------------------------------
+    aws_access_key_id: str | None = Field(
+        None, validation_alias=_env("aws_access_key_id", "AWS_ACCESS_KEY_ID")
+    )
+    aws_secret_access_key: SecretStr | None = Field(
+        None, validation_alias=_env("aws_secret_access_key", "AWS_SECRET_ACCESS_KEY")
+    )
+    s3_endpoint_url: str | None = Field(
+        None, validation_alias=_env("s3_endpoint_url", "S3_ENDPOINT_URL")
+    )
+    s3_region: str = "us-east-1"
+
+    # --- secrets -----------------------------------------------------------------------
+    api_key_pepper: SecretStr = SecretStr(DEFAULT_PEPPER)
+
+    # --- upload and archive limits -----------------------------------------------------
+    max_sequence_upload_bytes: int = Field(20 * GiB, gt=0)
+    max_asset_upload_bytes: int = Field(256 * MiB, gt=0)
+    max_archive_members: int = Field(100_000, gt=0)
+    max_archive_total_bytes: int = Field(60 * GiB, gt=0)  # extracted
+    max_archive_name_length: int = Field(512, gt=0)  # whole member path
+    max_archive_ratio: float = Field(200.0, gt=1.0)  # extracted / compressed, zip members
+    max_mesh_vertices: int = Field(2_000_000, gt=0)
+    max_mesh_faces: int = Field(4_000_000, gt=0)
+
+    # --- fairness ------------------------------------------------------------------------
+    rate_limit_per_s: float = Field(20.0, gt=0)  # token refill per API key
+    rate_limit_burst: int = Field(100, gt=0)  # bucket size
+    max_concurrent_jobs_per_key: int = Field(4, gt=0)  # QUEUED + RUNNING
+    max_page_size: int = Field(100, gt=0)
+
+    # --- workers -------------------------------------------------------------------------
+    task_time_limit_s: int = Field(6 * 3600, gt=0)
+    task_soft_time_limit_s: int = Field(6 * 3600 - 300, gt=0)
+    visibility_timeout_s: int = Field(8 * 3600, gt=0)
+    visibility_margin_s: int = Field(600, ge=0)
+    max_deliveries: int = Field(3, gt=0)
+
+    @model_validator(mode="after")
+    def _derived(self) -> Settings:
+        data = self.data_dir
+        if self.database_url is None:
+            self.database_url = f"sqlite:///{data}/osdar-ar.db"
+        if self.broker_url is None:
+            self.broker_url = f"sqla+sqlite:///{data}/broker.db"
+        if self.store_url is None:
+            self.store_url = f"file://{data.resolve()}/store"
+        if self.cache_dir is None:
+            self.cache_dir = data / "cache"
+        if self.sequences_dir is None:
+            self.sequences_dir = data / "sequences"
+        if not self.store_url.startswith(("file://", "s3://")):
+            raise ValueError(f"store_url {self.store_url!r}: expected file://PATH or s3://BUCKET")
+        if self.task_soft_time_limit_s >= self.task_time_limit_s:
+            raise ValueError(
+                f"task_soft_time_limit_s ({self.task_soft_time_limit_s}) must be below "
+                f"task_time_limit_s ({self.task_time_limit_s})"
+            )
+        # A broker redelivers a message whose ack has not arrived within the visibility
+        # timeout: shorter than a task may run, and a running job is delivered twice.
+        need = self.task_time_limit_s + self.visibility_margin_s
+        if self.visibility_timeout_s < need:
+            raise ValueError(
+                f"visibility_timeout_s ({self.visibility_timeout_s}) must be at least "
+                f"task_time_limit_s + visibility_margin_s ({need})"
+            )
+        if self.environment == "prod":
+            self._check_prod()
+        return self
+
+    def _check_prod(self) -> None:
+        problems = []
+        if self.api_key_pepper.get_secret_value() == DEFAULT_PEPPER:
+            problems.append("OSDAR_AR_API_KEY_PEPPER is the default: set a secret")
+        if str(self.database_url).startswith("sqlite"):
+            problems.append("DATABASE_URL is SQLite: use PostgreSQL in production")
+        if "sqlite" in str(self.broker_url):
+            problems.append("BROKER_URL is the SQLite broker: use Redis in production")
+        if not self.sequence_roots:
+            problems.append("OSDAR_AR_SEQUENCE_ROOTS is empty: name the readable folders")
+        if problems:
+            raise ValueError("refusing to start in prod: " + "; ".join(problems))
+
+    @property
+    def is_sqlite(self) -> bool:
+        return str(self.database_url).startswith("sqlite")
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process's settings (read from the environment once)."""
+    return Settings()
