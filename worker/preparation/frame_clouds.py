@@ -25,15 +25,20 @@ log = logging.getLogger(__name__)
 class FrameCloud:
     """One frame's cloud in its base frame at the lidar timestamp.
 
-    p_base : (n, 3) float64; sensor_index : (n,) uint8; intensity : (n,) float32;
-    timestamp : (n,) float64 per-point times (s); t_frame : the frame's lidar timestamp.
+    p_base32 : (n, 3) float32 as stored in the PCD (half the memory of float64);
+    sensor_index : (n,) uint8; intensity : (n,) float32; t_frame : the frame's lidar
+    timestamp (s).
     """
 
-    p_base: NDArray[np.float64]
+    p_base32: NDArray[np.float32]
     sensor_index: NDArray[np.uint8]
     intensity: NDArray[np.float32]
-    timestamp: NDArray[np.float64]
     t_frame: float
+
+    @property
+    def p_base(self) -> NDArray[np.float64]:
+        """(n, 3) float64 base points (exact: the PCD stores float32)."""
+        return self.p_base32.astype(np.float64)
 
 
 class FrameClouds:
@@ -80,12 +85,10 @@ class FrameClouds:
         si = np.zeros(n, np.uint8) if si is None else np.asarray(si).astype(np.uint8)
         it = cloud.fields.get("intensity")
         it = np.zeros(n, np.float32) if it is None else np.asarray(it).astype(np.float32)
-        tt = cloud.fields.get("timestamp")
         t_frame = self.frame_times.get(frame, np.nan)
-        tt = np.full(n, t_frame) if tt is None else np.asarray(tt).astype(np.float64)
-        p, si, it, tt = p[keep], si[keep], it[keep], tt[keep]
+        p, si, it = p[keep], si[keep], it[keep]
         k = voxel_keep(p, self.voxel_size)
-        fc = FrameCloud(p[k], si[k], it[k], tt[k], t_frame)
+        fc = FrameCloud(p[k].astype(np.float32), si[k], it[k], t_frame)
         self._cache[frame] = fc
         return fc
 
@@ -95,6 +98,6 @@ class FrameClouds:
 
     def memory_bytes(self) -> int:
         return sum(
-            c.p_base.nbytes + c.sensor_index.nbytes + c.intensity.nbytes + c.timestamp.nbytes
+            c.p_base32.nbytes + c.sensor_index.nbytes + c.intensity.nbytes
             for c in self._cache.values()
         )

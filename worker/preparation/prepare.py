@@ -54,6 +54,7 @@ from worker.preparation.calibration_point import (
     propose_pole_tops,
 )
 from worker.preparation.config import PrepareConfig
+from worker.preparation.frame_clouds import FrameClouds
 from worker.preparation.registration import RegisteredCloud, register_clouds
 from worker.preparation.scene_elements import find_scene_elements, reference_centreline
 
@@ -74,6 +75,12 @@ STAGES = (
     "scene_elements",
     "calibration_point",
 )
+
+
+# The shared per-frame clouds: range kept for odometry (m); no thinning (0: every
+# consumer sees the points as recorded, and a per-frame filter would cost more than it saves).
+FRAME_CLOUD_RANGE_M = 100.0
+FRAME_CLOUD_VOXEL_M = 0.0
 
 
 class PreparationError(Exception):
@@ -202,6 +209,11 @@ def run_preparation(
         if not inp.frame_times:
             raise PreparationError(f"{seq.folder}: no frame has a lidar timestamp")
         frames = inp.frames
+        # Every consumer below (odometry, both registrations) shares one read of each PCD.
+        clouds = FrameClouds(
+            seq, max_range=max(FRAME_CLOUD_RANGE_M, reg.max_range), voxel_size=FRAME_CLOUD_VOXEL_M
+        )
+        inp.options["_frame_clouds"] = clouds
 
     with stage("odometry"):
         odo_track, odo_health = odometry_track(inp)
@@ -213,6 +225,7 @@ def run_preparation(
             seq,
             pre_track,
             frames=frames[:: reg.pre_frame_step],
+            clouds=clouds,
             **config.registration_kwargs(False),
         )
 
@@ -225,7 +238,9 @@ def run_preparation(
         track = result.track
 
     with stage("registration"):
-        cloud = register_clouds(seq, track, frames=frames, **config.registration_kwargs(True))
+        cloud = register_clouds(
+            seq, track, frames=frames, clouds=clouds, **config.registration_kwargs(True)
+        )
         if len(cloud) == 0:
             warnings.append("the registered cloud is empty")
 

@@ -94,11 +94,16 @@ def register_clouds(
 ) -> RegisteredCloud:
     """Merge the frames' clouds into the world frame with ``track`` (T_world_base).
 
+    One point per world voxel is kept: the first in (frame order, point order), i.e. the
+    same result as :func:`voxel_keep` on the concatenation, computed frame by frame (a
+    per-frame unique, then open3d's hash set of the voxels already taken) so memory and
+    time stay linear in the number of points.
+
     Parameters
     ----------
     seq : the sequence.
     track : poses T_world_base; evaluated at each frame's lidar timestamp.
-    voxel_size : m; 0 keeps every point. Applied per frame and again to the union.
+    voxel_size : m; 0 keeps every point.
     frames : frame counters to use (default all).
     max_range : drop points farther than this from the base origin (m).
     sensors : sensor_index values to keep (default all).
@@ -111,30 +116,94 @@ def register_clouds(
     counters = list(seq.frame_indices if frames is None else frames)
     ts = dict(zip(seq.frame_indices, seq.timestamps(lidar), strict=True))
     keep_sensors = None if sensors is None else np.asarray(list(sensors), dtype=np.uint8)
+    T_all = track.interpolate(np.array([ts[f] for f in counters])) if counters else []
+    dedup = _VoxelSet(voxel_size, T_all, max_range)
     parts = []
-    for f in counters:
-        if clouds is not None:
-            fc = clouds.get(f)
-            p_base, si, inten = fc.p_base, fc.sensor_index, fc.intensity
-        else:
-            cloud = seq.pcd(f, allow_nonfinite=True)
-            p_base = cloud.xyz
-            si = cloud.fields.get("sensor_index")
-            si = np.zeros(len(p_base), np.uint8) if si is None else si.astype(np.uint8)
-            inten = cloud.fields.get("intensity")
-            n = len(p_base)
-            inten = np.zeros(n, np.float32) if inten is None else inten.astype(np.float32)
+    for f, T in zip(counters, T_all, strict=True):
+        p_base, si, inten = _frame_points(seq, f, clouds)
         mask = np.isfinite(p_base).all(axis=1)
         if max_range is not None:
             mask &= np.einsum("ij,ij->i", p_base, p_base) <= max_range**2
         if keep_sensors is not None:
             mask &= np.isin(si, keep_sensors)
-        p_base, si, inten = p_base[mask], si[mask], inten[mask]
-        T = track.interpolate(np.array([ts[f]]))[0]
-        p_world = transform_points(T, p_base)
-        k = voxel_keep(p_world, voxel_size)
-        parts.append(RegisteredCloud(p_world[k], np.full(len(k), f, np.int32), si[k], inten[k]))
+        p_world = transform_points(T, p_base[mask])
+        k = dedup.first_new(p_world)
+        parts.append(
+            RegisteredCloud(p_world[k], np.full(len(k), f, np.int32), si[mask][k], inten[mask][k])
+        )
     merged = RegisteredCloud.concatenate(parts)
-    k = voxel_keep(merged.xyz, voxel_size)
-    log.info("registered %d frames: %d points (voxel %.3f m)", len(counters), len(k), voxel_size)
-    return merged.select(k)
+    log.info(
+        "registered %d frames: %d points (voxel %.3f m)", len(counters), len(merged), voxel_size
+    )
+    return merged
+
+
+def _frame_points(
+    seq: Sequence, frame: int, clouds: FrameClouds | None
+) -> tuple[F64, NDArray[np.uint8], NDArray[np.float32]]:
+    """(p_base (n, 3) float64, sensor_index (n,), intensity (n,)) of one frame."""
+    if clouds is not None:
+        fc = clouds.get(frame)
+        return fc.p_base, fc.sensor_index, fc.intensity
+    cloud = seq.pcd(frame, allow_nonfinite=True)
+    p_base = cloud.xyz
+    n = len(p_base)
+    si = cloud.fields.get("sensor_index")
+    si = np.zeros(n, np.uint8) if si is None else si.astype(np.uint8)
+    inten = cloud.fields.get("intensity")
+    inten = np.zeros(n, np.float32) if inten is None else inten.astype(np.float32)
+    return p_base, si, inten
+
+
+def _mix64(x: NDArray[np.int64]) -> NDArray[np.int64]:
+    """splitmix64's finaliser: a bijection of 64-bit integers that spreads their bits."""
+    z = x.view(np.uint64).copy()
+    z ^= z >> np.uint64(30)
+    z *= np.uint64(0xBF58476D1CE4E5B9)
+    z ^= z >> np.uint64(27)
+    z *= np.uint64(0x94D049BB133111EB)
+    z ^= z >> np.uint64(31)
+    return z.view(np.int64)
+
+
+class _VoxelSet:
+    """World voxels already taken, across frames (open3d's C++ hash set of packed keys)."""
+
+    def __init__(self, voxel_size: float, T_all: F64, max_range: float | None) -> None:
+        self.voxel = float(voxel_size)
+        self.enabled = self.voxel > 0 and len(T_all) > 0
+        if not self.enabled:
+            return
+        import open3d as o3d
+
+        reach = (max_range if max_range is not None else 500.0) + 1.0
+        pos = np.asarray(T_all)[:, :3, 3]
+        self.lo = np.floor((pos.min(0) - reach) / self.voxel).astype(np.int64)
+        span = np.floor((pos.max(0) + reach) / self.voxel).astype(np.int64) - self.lo
+        self.packable = bool(np.all(span < (1 << 21)))
+        self.o3c = o3d.core
+        self.set = o3d.core.HashSet(
+            1 << 20, o3d.core.int64, (1,) if self.packable else (3,), o3d.core.Device("CPU:0")
+        )
+
+    def first_new(self, p_world: F64) -> NDArray[np.int64]:
+        """Indices (sorted) of the first point of every voxel not taken by earlier frames."""
+        if not self.enabled or len(p_world) == 0:
+            return np.arange(len(p_world))
+        key = np.floor(p_world / self.voxel).astype(np.int64) - self.lo
+        inside = np.all((key >= 0) & (key < (1 << 21)), axis=1) if self.packable else None
+        if self.packable and not np.all(inside):
+            # Points beyond the range the keys were sized for (max_range=None): keep them
+            # all rather than fold them onto other voxels.
+            key = np.clip(key, 0, (1 << 21) - 1)
+        if self.packable:
+            packed = (key[:, 0] << 42) | (key[:, 1] << 21) | key[:, 2]
+            uniq, first = np.unique(packed, return_index=True)
+            # Structured keys collide badly in open3d's hash table: insert a bijective
+            # scramble of them instead (same set semantics).
+            tensor = self.o3c.Tensor(_mix64(uniq).reshape(-1, 1))
+        else:
+            uniq, first = np.unique(key, axis=0, return_index=True)
+            tensor = self.o3c.Tensor(np.ascontiguousarray(uniq))
+        _, inserted = self.set.insert(tensor)
+        return np.sort(first[inserted.numpy().astype(bool)])

@@ -99,7 +99,18 @@ def _kiss_config(inp: LocalizationInput):
 
 
 def read_points(inp: LocalizationInput, frame: int) -> F64:
-    """(m, 3) finite float64 base points of one frame (empty on an unreadable cloud)."""
+    """(m, 3) finite float64 base points of one frame (empty on an unreadable cloud).
+
+    Uses the preparation's shared FrameClouds (``inp.options["_frame_clouds"]``) when there
+    is one, so each PCD is read once per preparation.
+    """
+    shared = inp.options.get("_frame_clouds")
+    if shared is not None:
+        try:
+            return shared.get(frame).p_base
+        except Exception as exc:
+            log.warning("frame %d: cloud unreadable (%s); skipped by odometry", frame, exc)
+            return np.zeros((0, 3))
     try:
         cloud = inp.sequence.pcd(frame, allow_nonfinite=True)
     except Exception as exc:
