@@ -32,6 +32,7 @@ class RegistrationConfig(_Section):
     voxel_size: float = Field(0.10, gt=0.0, le=2.0)  # m, final cloud: the speed/accuracy knob
     max_range: float = Field(80.0, gt=0.0)  # m from the base origin
     pre_voxel_size: float | None = Field(None, gt=0.0)  # m, pre-registration (default 2.5 x)
+    frame_step: int = Field(2, ge=1)  # every k-th frame for the final cloud (10 Hz overlaps)
     pre_frame_step: int = Field(4, ge=1)  # every k-th frame for the pre-registration
     pre_poses: Literal["odometry", "ins"] = "odometry"  # poses of the pre-registration
 
@@ -73,7 +74,7 @@ class PlaneConfig(_Section):
     ground_height: tuple[float, float] = (-1.2, 0.1)  # m rel. rail top: track bed
     platform_height: tuple[float, float] = (0.35, 1.4)  # m rel. rail top: platform top
     platform_min_lateral: float = Field(1.2, ge=0.0)  # m, platform edge beyond this
-    max_points: int = Field(400_000, ge=1000)  # per segment (random subset above this)
+    max_points: int = Field(60_000, ge=1000)  # per segment (random subset above this)
 
 
 class PoleConfig(_Section):

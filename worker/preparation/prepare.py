@@ -9,7 +9,8 @@ The recipe (:func:`run_preparation`), one line per stage:
    coarse voxels - enough to find the rails;
 5. tracks on it: the ego centreline the rail-based strategies need;
 6. the localization strategy -> T_world_base at every frame's lidar timestamp;
-7. final registration of all clouds with the strategy's poses;
+7. final registration with the strategy's poses (every ``frame_step``-th cloud: at 10 Hz
+   consecutive clouds overlap almost entirely);
 8. tracks again on the final cloud (the centrelines of the artifact);
 9. scene elements: ground / platform planes, platform edges, poles;
 10. the calibration point from the clicks (or proposed pole tops);
@@ -238,8 +239,9 @@ def run_preparation(
         track = result.track
 
     with stage("registration"):
+        final_frames = sorted(set(frames[:: reg.frame_step]) | {frames[-1]})
         cloud = register_clouds(
-            seq, track, frames=frames, clouds=clouds, **config.registration_kwargs(True)
+            seq, track, frames=final_frames, clouds=clouds, **config.registration_kwargs(True)
         )
         if len(cloud) == 0:
             warnings.append("the registered cloud is empty")
