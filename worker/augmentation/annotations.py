@@ -85,19 +85,46 @@ def cuboid_in_lidar(obj: ObjectMesh, T_world_obj: F64, T_world_base: F64) -> lis
     return [*map(float, c), *map(float, q), *map(float, obj.size)]
 
 
-def mask_outline(alpha: NDArray, offset_uv: tuple[int, int], threshold: float = 0.5) -> list[float]:
+def mask_outline(
+    alpha: NDArray,
+    offset_uv: tuple[int, int],
+    threshold: float = 0.5,
+    epsilon_px: float = 0.0,
+) -> list[float]:
     """Closed outline (flat list, full-image pixels) of the largest blob of a mask.
 
     alpha : (h, w) coverage of a region of interest whose top-left pixel is ``offset_uv``.
+    epsilon_px : Douglas-Peucker tolerance; 0 keeps the exact boundary-pixel polygon
+        (straight runs compressed), which ``cv2.fillPoly`` turns back into the blob.
+        Small objects lose most to any simplification (a 16 px wide person: IoU 0.86
+        at 0.5 px), so the default is exact.
     """
     m = (np.asarray(alpha) >= threshold).astype(np.uint8)
     if not m.any():
         return []
-    contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    c = max(contours, key=cv2.contourArea)
-    c = cv2.approxPolyDP(c, 0.5, True).reshape(-1, 2).astype(np.float64)
+    contours, hier = cv2.findContours(m, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    outer = [i for i in range(len(contours)) if hier[0, i, 3] < 0]
+    k = max(outer, key=lambda i: cv2.contourArea(contours[i]))
+    c = contours[k]
+    if epsilon_px > 0:
+        c = cv2.approxPolyDP(c, epsilon_px, True)
+    c = c.reshape(-1, 2).astype(np.float64)
+    # Holes (e.g. between legs) are spliced in through zero-width bridges (a keyhole
+    # polygon): one closed poly2d that fills back to the blob without its holes.
+    for j in range(len(contours)):
+        if hier[0, j, 3] == k and len(contours[j]) >= 3:
+            c = _splice_hole(c, contours[j].reshape(-1, 2).astype(np.float64))
     c += np.asarray(offset_uv, dtype=np.float64)
     return [float(v) for v in c.ravel()]
+
+
+def _splice_hole(outer: F64, hole: F64) -> F64:
+    """Keyhole: ``outer`` (n, 2) -> to the nearest ``hole`` (m, 2) vertex, round the hole,
+    back. OpenCV returns holes with the opposite orientation to their outer contour."""
+    d = np.linalg.norm(outer[:, None, :] - hole[None, :, :], axis=2)
+    i, j = np.unravel_index(int(np.argmin(d)), d.shape)
+    ring = np.concatenate([hole[j:], hole[: j + 1]])
+    return np.concatenate([outer[: i + 1], ring, outer[i:]])
 
 
 def _entry(

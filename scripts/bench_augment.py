@@ -1,0 +1,248 @@
+# ruff: noqa: T201 (a script: prints its table)
+"""Benchmark of the augmentation step against its I/O floor (BENCHMARK.md).
+
+    .venv/bin/python scripts/bench_augment.py /tmp/seqs/fire_site_full --workers 2 --runs 3
+
+Per run, in the same process and with the same worker count:
+
+- **floor**: decode and re-encode every PNG frame of the augmented cameras with the same
+  settings (``cv2.imread`` + ``cv2.imencode`` at the spec's compression level + an
+  atomic write: the job's own PNG path, no colour conversion) and read and write every
+  PCD (``read_pcd`` + ``write_pcd``), in a process pool of ``--workers`` (started before
+  the clock: the floor is the I/O alone);
+- **job**: :func:`worker.augmentation.augment.augment` with the prepared sequence given
+  (the preparation is cached per sequence and reported apart), evaluation off, pool
+  start, planning, frames and assembly all inside the clock.
+
+Prints per-stage seconds (medians over runs), job / floor (median of the per-run
+ratios) and the frames stage alone / floor. With ``--origins`` (default
+``SEQ/ground_truth/lidar_origins.json`` when present) it also compares the lidar cast
+with per-sensor origins against the paper's single origin on every frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import statistics
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from renderer.lidar_cast import hidden_from, origins_from_json, point_origins
+from renderer.transforms import invert_T
+from worker.augmentation.augment import (
+    _pool_context,
+    augment,
+    cast_frame_lidar,
+    plan_augmentation,
+)
+from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel, RenderSpec
+from worker.osdar.errors import atomic_write_bytes
+from worker.osdar.pcd import read_pcd, write_pcd
+from worker.osdar.sequence import Sequence, uri_to_path
+from worker.preparation.config import PrepareConfig
+from worker.preparation.prepare import prepare
+
+log = logging.getLogger("bench_augment")
+
+
+def _io_frame(jobs: list[tuple[str, str, str]], compression: int) -> float:
+    """Decode + encode PNGs (OpenCV, BGR as decoded: no colour conversion), read + write
+    PCDs, of one frame; returns seconds. The strictest floor of the job's own I/O."""
+    tic = time.perf_counter()
+    for kind, src, dst in jobs:
+        if kind == "png":
+            img = cv2.imread(src, cv2.IMREAD_UNCHANGED)
+            _, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, compression])
+            atomic_write_bytes(dst, buf.tobytes())
+        else:
+            write_pcd(dst, read_pcd(src))
+    return time.perf_counter() - tic
+
+
+def _noop(_: int = 0) -> int:
+    return 0
+
+
+def measure_floor(
+    seq: Sequence, frames: list[int], streams: list[str], workers: int, compression: int, out: Path
+) -> float:
+    """Wall seconds of the I/O floor (module docstring)."""
+    shutil.rmtree(out, ignore_errors=True)
+    tasks = []
+    for f in frames:
+        jobs = []
+        for s in streams:
+            src = seq.path(f, s)
+            rel = src.relative_to(seq.folder)
+            jobs.append(("png" if src.suffix == ".png" else "pcd", str(src), str(out / rel)))
+        tasks.append(jobs)
+    if workers <= 1:
+        tic = time.perf_counter()
+        for jobs in tasks:
+            _io_frame(jobs, compression)
+        wall = time.perf_counter() - tic
+    else:
+        with ProcessPoolExecutor(workers, mp_context=_pool_context()) as pool:
+            list(pool.map(_noop, range(workers * 2)))  # workers up before the clock
+            tic = time.perf_counter()
+            list(pool.map(_io_frame, tasks, [compression] * len(tasks)))
+            wall = time.perf_counter() - tic
+    shutil.rmtree(out, ignore_errors=True)
+    return wall
+
+
+def origins_gain(seq_folder: Path, spec: AugmentSpec, prepared: Any, origins_file: Path) -> None:
+    """Per-sensor origins vs the single origin, against the per-sensor cast as reference."""
+    plan = plan_augmentation(seq_folder, spec, prepared)
+    if plan.lidar_stream is None:
+        return
+    true_o = origins_from_json(json.loads(origins_file.read_text()))
+    n_true = n_single = missed = extra = hidden = 0
+    disp = []
+    for f in plan.frames:
+        path = uri_to_path(seq_folder, plan.uris[f][plan.lidar_stream])
+        fields = read_pcd(path).fields
+        T_base_obj = invert_T(plan.T_world_base[plan.lidar_stream][f]) @ plan.T_world_obj
+        new_t, idx_t, _ = cast_frame_lidar(fields, plan.obj_full, T_base_obj, true_o)
+        new_s, idx_s, _ = cast_frame_lidar(fields, plan.obj_full, T_base_obj, np.zeros(3))
+        n_true += len(idx_t)
+        n_single += len(idx_s)
+        missed += len(np.setdiff1d(idx_t, idx_s))
+        extra += len(np.setdiff1d(idx_s, idx_t))
+        if len(idx_s):
+            pts = np.stack([new_s[k][idx_s] for k in "xyz"], 1).astype(np.float64)
+            o = point_origins({k: v[idx_s] for k, v in fields.items()}, true_o)
+            hidden += int(hidden_from(plan.obj_full, T_base_obj, pts, o).sum())
+        common = np.intersect1d(idx_t, idx_s)
+        if len(common):
+            a = np.stack([new_t[k][common] for k in "xyz"], 1).astype(np.float64)
+            b = np.stack([new_s[k][common] for k in "xyz"], 1).astype(np.float64)
+            disp.append(np.linalg.norm(a - b, axis=1))
+    d = np.concatenate(disp) if disp else np.zeros(0)
+    print(f"\nlidar origins over {len(plan.frames)} frames (reference: per-sensor cast)")
+    print(f"  object points: per-sensor {n_true}, single origin {n_single}")
+    if n_true:
+        print(f"  single origin misses {missed} ({100 * missed / n_true:.1f} %) of the points")
+    if n_single:
+        print(
+            f"  single origin moves {extra} ({100 * extra / n_single:.1f} %) points the true "
+            f"rays do not reach the object with; {hidden} ({100 * hidden / n_single:.1f} %) "
+            "lie on faces their own sensor cannot see"
+        )
+    if len(d):
+        print(
+            f"  points on the object in both: position difference median "
+            f"{1000 * np.median(d):.1f} mm, max {1000 * d.max():.1f} mm"
+        )
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("sequence", type=Path)
+    ap.add_argument("--object", default="person")
+    ap.add_argument("--place", default="s=40,offset=0,yaw=90")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--strategy", default="auto")
+    ap.add_argument("--png-compression", type=int, default=1)
+    ap.add_argument("--cache-dir", type=Path, default=Path("/tmp/osdar_bench_cache"))
+    ap.add_argument("--scratch", type=Path, default=Path("/tmp/osdar_bench_augment"))
+    ap.add_argument("--origins", type=Path, default=None, help="per-sensor lidar_origins.json")
+    ap.add_argument("--json", type=Path, default=None, help="write the results here")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+
+    seq = Sequence.open(args.sequence)
+    spec = AugmentSpec(
+        object=ObjectSource.from_cli(args.object),
+        placement=PlacementModel.parse(args.place),
+        strategy=args.strategy,
+        render=RenderSpec(png_compression=args.png_compression),
+    )
+    tic = time.perf_counter()
+    prepared = prepare(
+        args.sequence, PrepareConfig(strategy=args.strategy), cache_dir=args.cache_dir
+    )
+    t_prep = time.perf_counter() - tic
+    cams = spec.camera_names(seq.cameras)
+    streams = cams + ([seq.lidar_stream] if seq.lidar_stream else [])
+    frames = seq.frame_indices
+    print(
+        f"{seq.name}: {len(frames)} frames, streams {', '.join(streams)}, "
+        f"{args.workers} worker(s), PNG level {args.png_compression}; preparation "
+        f"{t_prep:.1f} s ({'reused' if prepared.summary.get('reused') else 'computed'})"
+    )
+    floors, jobs, frame_walls, ratios, stage_runs = [], [], [], [], []
+    out = args.scratch / "out"
+    for run in range(args.runs):
+        order = ("floor", "job") if run % 2 == 0 else ("job", "floor")
+        for what in order:
+            if what == "floor":
+                floors.append(
+                    measure_floor(
+                        seq, frames, streams, args.workers, args.png_compression,
+                        args.scratch / "floor",
+                    )
+                )  # fmt: skip
+            else:
+                tic = time.perf_counter()
+                m = augment(
+                    args.sequence, spec, out, prepared=prepared, workers=args.workers,
+                    overwrite=True, evaluate=False,
+                )  # fmt: skip
+                jobs.append(time.perf_counter() - tic)
+                frame_walls.append(m["timings_s"]["frames_total_wall"])
+                stage_runs.append(m["timings_s"])
+                visible = {c: v["visible_frames"] for c, v in m["cameras"].items()}
+        ratios.append(jobs[-1] / floors[-1])
+        print(
+            f"  run {run + 1}: floor {floors[-1]:.2f} s, job {jobs[-1]:.2f} s "
+            f"(frames {frame_walls[-1]:.2f} s), ratio {ratios[-1]:.3f}"
+        )
+    shutil.rmtree(args.scratch, ignore_errors=True)
+    keys = [k for k, v in stage_runs[0].items() if isinstance(v, float)]
+    med = {k: statistics.median(r.get(k, 0.0) for r in stage_runs) for k in keys}
+    print(f"\nobject visible in {visible} of {len(frames)} frames")
+    print("per-stage seconds (median; frames_* are summed over the workers' processes):")
+    for k, v in med.items():
+        print(f"  {k:<22} {v:8.3f}")
+    result = {
+        "sequence": seq.name,
+        "frames": len(frames),
+        "workers": args.workers,
+        "floor_s": floors,
+        "job_s": jobs,
+        "frames_wall_s": frame_walls,
+        "ratio_job_floor": ratios,
+        "ratio_median": statistics.median(ratios),
+        "ratio_frames_floor_median": statistics.median(
+            fw / fl for fw, fl in zip(frame_walls, floors, strict=True)
+        ),
+        "stages_median_s": med,
+    }
+    print(
+        f"\nfloor {statistics.median(floors):.2f} s, job {statistics.median(jobs):.2f} s: "
+        f"job / floor = {result['ratio_median']:.3f} (median of {args.runs}); "
+        f"frames stage / floor = {result['ratio_frames_floor_median']:.3f}; target <= 1.2"
+    )
+    origins = args.origins or args.sequence / "ground_truth" / "lidar_origins.json"
+    if origins.is_file():
+        origins_gain(args.sequence, spec, prepared, origins)
+    if args.json is not None:
+        args.json.write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,360 @@
+"""The augmentation step end to end on small synthetic sequences with ground truth.
+
+"True poses" runs use a PreparedSequence made of the sequence's ground truth
+(``truth_prepared``: dense true poses, true centrelines), so every pixel error measured
+here is the rendering path's own.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+
+from renderer.camera import CameraModel
+from renderer.transforms import invert_T, transform_points
+from worker.augmentation.augment import augment_frames, finish_augmentation, plan_augmentation
+from worker.augmentation.evaluate_object import truth_prepared
+from worker.augmentation.placement import PlacementError
+from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel
+from worker.cli import main
+from worker.osdar.pcd import read_pcd
+from worker.poses import PoseTrack
+
+pytestmark = pytest.mark.gl
+
+SEQ = {"scene": "fire_site", "frames": 6, "scale": 0.15, "lidar_density": 0.2, "seed": 3}
+
+
+def _generate(folder: Path, **kw: object) -> Path:
+    from worker.synth.generator import SynthConfig, generate
+
+    generate(folder, SynthConfig(**{**SEQ, **kw}))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _generate(tmp_path_factory.mktemp("aug") / "fire_aug")
+
+
+@pytest.fixture(scope="module")
+def truth(seq: Path):
+    return truth_prepared(seq)
+
+
+def _spec(seq: Path, place: str, obj: str = "person", **kw: object) -> AugmentSpec:
+    return AugmentSpec(
+        object=ObjectSource(builtin=obj, **kw),
+        placement=PlacementModel.parse(place),
+        lidar_origins=str(seq / "ground_truth" / "lidar_origins.json"),
+    )
+
+
+def _run(seq: Path, truth, spec: AugmentSpec, scratch: Path):
+    plan = plan_augmentation(seq, spec, truth)
+    chunk = augment_frames(plan, plan.frames, scratch)
+    return plan, chunk
+
+
+@pytest.fixture(scope="module")
+def truth_run(seq: Path, truth, tmp_path_factory: pytest.TempPathFactory):
+    base = tmp_path_factory.mktemp("truth_run")
+    plan, chunk = _run(seq, truth, _spec(seq, "s=22,offset=0,yaw=90"), base / "scratch")
+    metrics = finish_augmentation(plan, [chunk], base / "fire_aug_person")
+    return plan, chunk, metrics, base / "fire_aug_person"
+
+
+def _cam_times(seq: Path, cam: str) -> dict[int, float]:
+    from worker.osdar.sequence import Sequence
+
+    s = Sequence.open(seq)
+    return dict(zip(s.frame_indices, s.timestamps(cam), strict=True))
+
+
+def _true_cameras(seq: Path) -> dict[str, CameraModel]:
+    meta = json.loads((seq / "ground_truth" / "meta.json").read_text())
+    return {
+        n: CameraModel.from_json(c).scaled(meta["scale"])
+        for n, c in meta["cameras_full_resolution"].items()
+    }
+
+
+# ---------------------------------------------------------------------------- true poses
+def test_anchor_and_mask_land_where_the_ground_truth_says(seq: Path, truth_run) -> None:
+    plan, chunk, _, _ = truth_run
+    dense = PoseTrack.from_csv(seq / "ground_truth" / "poses_dense.csv")
+    cams = _true_cameras(seq)
+    p_obj = plan.T_world_obj[:3, 3]
+    checked = 0
+    for name, cam in cams.items():
+        times = _cam_times(seq, name)
+        for rec in chunk.frames:
+            cr = rec.cameras[name]
+            assert cr.visible
+            T = dense.interpolate(np.array([times[rec.frame_idx]]))[0]
+            uv, ok = cam.project_world(p_obj[None], T)
+            assert ok[0]
+            assert np.linalg.norm(np.asarray(cr.anchor_uv) - uv[0]) < 0.5
+            # The rendered mask's box against the projected vertices' box (unoccluded).
+            verts = transform_points(plan.T_world_obj, plan.obj_render.vertices)
+            uvv, okv = cam.project_world(verts, T)
+            assert okv.all()
+            lo, hi = uvv.min(0), uvv.max(0)
+            box = np.array(cr.bbox)  # pixel edges
+            if cr.visible_fraction > 0.98:
+                assert np.all(np.abs(box[:2] - (lo - 0.5 + 0.5)) < 1.6), (box, lo, hi)
+                assert np.all(np.abs(box[2:] - hi) < 1.6), (box, lo, hi)
+            checked += 1
+    assert checked == 2 * len(chunk.frames)
+
+
+def test_poly2d_and_bbox_match_the_rendered_mask(truth_run) -> None:
+    plan, chunk, _, _ = truth_run
+    for rec in chunk.frames:
+        for name, view in rec.annotation.views.items():
+            cam = plan.cameras[name]
+            mask = rec.cameras[name].mask((cam.height, cam.width))
+            if mask.sum() < 150:
+                continue
+            poly = np.round(np.asarray(view.outline).reshape(-1, 2)).astype(np.int32)
+            filled = np.zeros(mask.shape, np.uint8)
+            cv2.fillPoly(filled, [poly], 1)
+            iou = np.logical_and(filled > 0, mask).sum() / np.logical_or(filled > 0, mask).sum()
+            assert iou > 0.9, (rec.frame_idx, name, iou)
+            xc, yc, w, h = view.bbox
+            vs, us = np.nonzero(mask)
+            assert abs((xc - w / 2) - (us.min() - 0.5)) < 1e-6
+            assert abs((yc + h / 2) - (vs.max() + 0.5)) < 1e-6
+
+
+def test_lidar_object_points_lie_on_the_surface(seq: Path, truth_run) -> None:
+    plan, chunk, _, out = truth_run
+    scene = o3d.t.geometry.RaycastingScene()
+    mesh = plan.obj_full
+    scene.add_triangles(
+        o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+        o3d.core.Tensor(mesh.faces.astype(np.uint32)),
+    )
+    total = 0
+    for rec in chunk.frames:
+        idx = np.asarray(rec.annotation.lidar_indices, dtype=np.int64)
+        uri = plan.uris[rec.frame_idx]["lidar"]
+        cloud = read_pcd(out / uri.lstrip("/"))
+        src = read_pcd(seq / uri.lstrip("/"))
+        assert cloud.header.data == src.header.data and list(cloud.fields) == list(src.fields)
+        others = np.setdiff1d(np.arange(len(src)), idx)
+        for k in src.fields:  # every other point bit-identical, all fields kept
+            assert np.array_equal(cloud.fields[k][others], src.fields[k][others])
+        if len(idx) == 0:
+            continue
+        p_base = np.stack([cloud.fields[k][idx] for k in "xyz"], 1).astype(np.float64)
+        T_obj_base = invert_T(plan.T_world_obj) @ plan.T_world_base["lidar"][rec.frame_idx]
+        p_obj = transform_points(T_obj_base, p_base)
+        d = scene.compute_distance(o3d.core.Tensor(p_obj.astype(np.float32))).numpy()
+        assert d.max() < 1e-3
+        total += len(idx)
+    assert total > 20
+
+
+def test_output_sequence_is_complete_and_loads(seq: Path, truth_run) -> None:
+    import raillabel
+
+    from worker.osdar.labels import validate_openlabel
+
+    _, chunk, metrics, out = truth_run
+    files_in = {p.relative_to(seq) for p in seq.rglob("*") if p.is_file()}
+    files_out = {p.relative_to(out) for p in out.rglob("*") if p.is_file()}
+    labels_in = next(p for p in files_in if p.name.endswith("_labels.json"))
+    assert files_in - {labels_in} <= files_out
+    for rel in files_in - {labels_in}:
+        if rel.suffix not in (".png", ".pcd"):
+            assert (seq / rel).read_bytes() == (out / rel).read_bytes(), rel
+    labels_path = out / "fire_aug_person_labels.json"
+    raw = json.loads(labels_path.read_text())
+    assert validate_openlabel(raw) == []
+    scene = raillabel.load(labels_path)
+    assert len(scene.frames) == len(chunk.frames)
+    objs = [o for o in raw["openlabel"]["objects"].values() if "_synthetic_" in o["name"]]
+    assert len(objs) == 1 and objs[0]["type"] == "person"
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["frames"]["annotated"] == len(chunk.frames)
+    # True poses against the ground truth: the evaluation finds (almost) no error.
+    for e in m["object_errors"]["cameras"].values():
+        assert e["anchor_px_max"] < 0.5 and e["mask_iou_min"] > 0.95
+    assert "frames_render" in m["timings_s"] and metrics["lidar"]["object_points_total"] > 0
+
+
+# ---------------------------------------------------------------------------- CLI
+@pytest.fixture(scope="module")
+def cli_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("prep_cache")
+
+
+def test_cli_augment_end_to_end(seq: Path, cli_cache: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "fire_cli"
+    rc = main(
+        ["augment", str(seq), "--object", "rock", "--place", "s=20,offset=0.3,yaw=30",
+         "--out", str(out), "--workers", "2", "--cache-dir", str(cli_cache)]
+    )  # fmt: skip
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "wrote" in text and "anchor error" in text
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["frames"]["annotated"] > 0
+    for rel in ("novatel_oem7_inspva", "ground_truth"):
+        for p in (seq / rel).iterdir():
+            assert (out / rel / p.name).read_bytes() == p.read_bytes()
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--place", "s=5000,offset=0,yaw=0"], "off the prepared track"),
+        (["--place", "s=20,bogus=1"], "unknown key"),
+        (["--object", "unicorn"], "unknown obstacle"),
+        (["--cameras", "rgb_left"], "rgb_left"),
+    ],
+)
+def test_cli_user_errors_exit_2(
+    seq: Path, cli_cache: Path, tmp_path: Path, capsys, args: list[str], needle: str
+) -> None:
+    base = ["augment", str(seq), "--object", "person", "--out", str(tmp_path / "o"),
+            "--workers", "1", "--cache-dir", str(cli_cache)]  # fmt: skip
+    rc = main(base + args)
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert needle in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_inside_a_pole_exit_2(seq: Path, cli_cache: Path, tmp_path: Path, capsys) -> None:
+    from worker.preparation.config import PrepareConfig
+    from worker.preparation.prepare import prepare
+
+    prepared = prepare(seq, PrepareConfig(), cache_dir=cli_cache)
+    if not prepared.poles or prepared.ego is None:
+        pytest.skip("preparation found no pole in this small sequence")
+    first = min(prepared.track.timestamps)
+    p0 = prepared.track.interpolate(np.array([first]))[0, :3, 3]
+    s0 = prepared.ego.project(p0[None]).s[0]
+    axes = np.array([[*p.axis_xy[:2], p0[2]] for p in prepared.poles])
+    pr = prepared.ego.project(axes)
+    inside = np.flatnonzero((pr.s > 1.0) & (pr.s < prepared.ego.length - 1.0))
+    if len(inside) == 0:
+        pytest.skip("no pole beside the prepared ego track")
+    k = inside[0]
+    place = f"s={pr.s[k] - s0:.3f},offset={pr.lateral[k]:.3f},yaw=0"
+    rc = main(["augment", str(seq), "--object", "person", "--place", place,
+               "--out", str(tmp_path / "o"), "--cache-dir", str(cli_cache)])  # fmt: skip
+    assert rc == 2
+    assert "cuts pole" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------- hard cases
+def _check_finite(plan, chunk) -> None:
+    for rec in chunk.frames:
+        if rec.annotation is None:
+            continue
+        assert np.all(np.isfinite(rec.annotation.cuboid))
+        for name, v in rec.annotation.views.items():
+            cam = plan.cameras[name]
+            assert np.all(np.isfinite(v.bbox)) and v.bbox[2] > 0 and v.bbox[3] > 0
+            xc, yc, w, h = v.bbox
+            assert -0.5 - 1e-6 <= xc - w / 2 and xc + w / 2 <= cam.width - 0.5 + 1e-6
+            assert -0.5 - 1e-6 <= yc - h / 2 and yc + h / 2 <= cam.height - 0.5 + 1e-6
+
+
+def test_object_passing_the_camera(seq: Path, truth, tmp_path: Path) -> None:
+    """s small: the object is partly outside the image, crosses the near plane, ends up
+    behind the cameras; frames where it is not visible are copied byte-identically."""
+    plan, chunk = _run(seq, truth, _spec(seq, "s=2.5,offset=0.6,yaw=0", "cow"), tmp_path)
+    _check_finite(plan, chunk)
+    hidden = 0
+    for rec in chunk.frames:
+        for name, cr in rec.cameras.items():
+            uri = plan.uris[rec.frame_idx][name].lstrip("/")
+            if not cr.augmented:
+                hidden += 1
+                assert (tmp_path / uri).read_bytes() == (seq / uri).read_bytes()
+                assert (tmp_path / uri).stat().st_ino == (seq / uri).stat().st_ino
+            elif rec.annotation is not None and name in rec.annotation.views:
+                assert rec.annotation.views[name].truncated
+    assert hidden > 0
+
+
+def test_tiny_far_object(seq: Path, truth, tmp_path: Path) -> None:
+    T0 = truth.track.T[0]
+    heading = math.degrees(math.atan2(T0[1, 0], T0[0, 0]))
+    p = T0[:3, 3] + 300.0 * T0[:3, 0]
+    spec = AugmentSpec(
+        object=ObjectSource(builtin="person"),
+        placement=PlacementModel(mode="world", xyz=(p[0], p[1], p[2] - 3.5), yaw_deg=heading),
+    )
+    plan, chunk = _run(seq, truth, spec, tmp_path)
+    _check_finite(plan, chunk)
+    assert plan.info["render_faces"] <= 400  # a few pixels high: the coarsest LOD
+    sizes = [v.bbox[3] for r in chunk.frames if r.annotation for v in r.annotation.views.values()]
+    assert sizes and max(sizes) < 12
+
+
+def test_huge_near_elephant(seq: Path, truth, tmp_path: Path) -> None:
+    plan, chunk = _run(seq, truth, _spec(seq, "s=3,offset=0,yaw=90", "elephant"), tmp_path)
+    _check_finite(plan, chunk)
+    first = chunk.frames[0]
+    cam = plan.cameras["rgb_center"]
+    view = first.annotation.views["rgb_center"]
+    assert view.truncated and view.bbox[2] > 0.8 * cam.width
+    assert first.lidar_points > 0
+
+
+def test_far_origin_sequence(tmp_path: Path) -> None:
+    seq = _generate(tmp_path / "far_aug", frames=3, scale=0.1, far_origin=True)
+    truth = truth_prepared(seq)
+    plan, chunk = _run(seq, truth, _spec(seq, "s=20,offset=0,yaw=90"), tmp_path / "scratch")
+    assert (
+        np.abs(plan.T_world_obj[:2, 3]).max() > 1e5 or np.abs(truth.track.T[0, :2, 3]).max() < 1e5
+    )
+    dense = PoseTrack.from_csv(seq / "ground_truth" / "poses_dense.csv")
+    for name, cam in _true_cameras(seq).items():
+        times = _cam_times(seq, name)
+        for rec in chunk.frames:
+            cr = rec.cameras[name]
+            assert cr.visible
+            T = dense.interpolate(np.array([times[rec.frame_idx]]))[0]
+            uv, _ = cam.project_world(plan.T_world_obj[:3, 3][None], T)
+            assert np.linalg.norm(np.asarray(cr.anchor_uv) - uv[0]) < 0.5
+
+
+# ---------------------------------------------------------------------------- spec
+def test_from_job_spec() -> None:
+    spec = AugmentSpec.from_job_spec(
+        {
+            "sequence_id": "abc",
+            "cameras": ["rgb_center"],
+            "lidar": False,
+            "object": {"builtin": "cow", "scale": 1.2},
+            "placement": {"mode": "lidar_frame", "xyz": [20.0, 1.0, 0.0], "frame_idx": 3},
+            "frame_range": [2, 5],
+            "render": {"png_compression": 4, "shadow": False},
+        }
+    )
+    assert spec.object.builtin == "cow" and spec.object.scale == 1.2
+    assert spec.placement.mode == "lidar" and spec.placement.frame_idx == 3
+    assert spec.frame_range == (2, 5) and not spec.lidar and spec.cameras == ("rgb_center",)
+    assert spec.render.png_compression == 4 and spec.render.shadow_strength == 0.0
+    track = AugmentSpec.from_job_spec(
+        {"object": {"builtin": "rock"}, "placement": {"mode": "track", "s": 30.0}}
+    )
+    assert track.placement.yaw_deg == 0.0
+    with pytest.raises(ValueError, match="asset"):
+        AugmentSpec.from_job_spec(
+            {"object": {"asset_id": "x"}, "placement": {"mode": "track", "s": 1}}
+        )
+    with pytest.raises(PlacementError):
+        PlacementModel.parse("s=1,nope=2")
