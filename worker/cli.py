@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -173,40 +174,182 @@ def cmd_info(args: argparse.Namespace) -> int:
 def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo",
-        help="run the main job end to end on a synthetic sequence",
-        description="Make a synthetic sequence, run the pipeline that exists on it, "
-        "package the result as an archive and print the metrics.",
+        help="run the job service embedded and one job end to end on a synthetic sequence",
+        description="Start the API and a worker (SQLite, local store, a SQLite broker: no "
+        "server), make a synthetic sequence, submit a job over HTTP and poll it, download "
+        "and check the archive, print the metrics and the dashboard's address. Everything "
+        "is kept under --workdir.",
     )
     p.add_argument("--workdir", type=Path, default=Path("demo_out"))
     p.add_argument("--scene", default="fire_site")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--scale", type=float, default=0.25)
     p.add_argument("--lidar-density", type=float, default=0.25)
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=0, help="API port (0: any free port)")
+    p.add_argument(
+        "--serve", action="store_true", help="keep the API and worker running until Ctrl-C"
+    )
     p.set_defaults(func=cmd_demo)
 
 
+def _fmt(stats: dict[str, Any] | None) -> str:
+    if not stats or stats.get("mean") is None:
+        return "-"
+    return f"{stats['mean']:.2f} ± {stats['std']:.2f}"
+
+
+def _print_demo(result: dict[str, Any], workdir: Path, serving: bool = False) -> None:
+    job = result["job"]
+    out = print
+    out(f"job {job['id']}: {job['state']}" + (f" ({job['error']})" if job.get("error") else ""))
+    if job.get("timings"):
+        out("  stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in job["timings"].items()))
+    metrics = dict(result.get("metrics") or {})
+    if metrics:
+        path = workdir / "metrics.json"
+        path.write_text(json.dumps(metrics, indent=1))
+        ev = metrics.get("evaluation") or {}
+        chosen = ev.get("strategy")
+        out(f"  strategy: {chosen} (requested {ev.get('requested_strategy')})")
+        gt = ev.get("ground_truth") or {}
+        pose = (gt.get("pose_error") or {}).get(chosen) or {}
+        if "translation_m_mean" in pose:
+            out(
+                f"  true pose error: {pose['translation_m_mean']:.3f} m "
+                f"(max {pose['translation_m_max']:.3f}), {pose['rotation_deg_mean']:.3f} deg"
+            )
+        out(f"  {'camera':<20} {'track':<10} {'RPE px':>16} {'jitter px':>16}")
+        for cam, tracks in (gt.get("landmark_rpe") or {}).items():
+            for name, m in tracks.items():
+                rpe, jit = _fmt(m.get("rpe_px")), _fmt(m.get("jitter_px"))
+                out(f"  {cam:<20} {name:<10} {rpe:>16} {jit:>16}")
+        for cam, m in (ev.get("rpe") or {}).items():  # clicked landmark
+            rpe, jit = _fmt(m.get("rpe_px")), _fmt(m.get("jitter_px"))
+            out(f"  {cam:<20} {'clicks':<10} {rpe:>16} {jit:>16}")
+        aug = metrics.get("augmentation") or {}
+        if aug:
+            fr = aug.get("frames") or {}
+            out(
+                f"  augmentation: {aug.get('object', {}).get('class')} annotated in "
+                f"{fr.get('annotated')} of {fr.get('augmented_range')} frames"
+            )
+        out(f"  all metrics: {path}")
+    if "archive" in result:
+        c = result["archive_check"]
+        out(
+            f"archive: {result['archive']} ({c['bytes'] / 1e6:.1f} MB, {c['files']} files: "
+            f"{c['images']} images, {c['clouds']} clouds, {c['previews']} previews) - checked"
+        )
+    if result.get("dashboard"):
+        out(f"dashboard: {result['dashboard']}")
+    else:
+        out(f"dashboard: not in this build yet; the API's docs: {result['docs']}")
+    if not serving:
+        out("  (the service has stopped: `osdar-ar demo --serve` keeps it up)")
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
-    from worker.demo import run_demo
+    from worker.demo import run_service_demo
 
-    bar = _progress_bar(args.frames, "demo")
+    synth_bar = _progress_bar(args.frames, "synthetic sequence")
+    job_bar: Any = None
 
-    def progress(done: int, total: int) -> None:
-        bar.total = total
-        bar.update(done - bar.n)
+    def on_synth(done: int, total: int) -> None:
+        synth_bar.total = total
+        synth_bar.update(done - synth_bar.n)
+
+    def on_job(job: dict[str, Any]) -> None:
+        nonlocal job_bar
+        if job_bar is None:
+            synth_bar.close()
+            job_bar = _progress_bar(max(1, job["progress"]["total"]), f"job {job['id'][:8]}")
+        job_bar.total = max(1, job["progress"]["total"])
+        job_bar.set_postfix_str(f"{job['state'].lower()}: {job['stage'] or '-'}")
+        job_bar.update(job["progress"]["done"] - job_bar.n)
+
+    def keep_running(url: str) -> None:
+        if not args.serve:
+            return
+        print(f"serving on {url} (Ctrl-C stops)", file=sys.stderr)  # noqa: T201
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass
+
+    import time
 
     try:
-        result = run_demo(
+        result = run_service_demo(
             args.workdir,
             scene=args.scene,
             frames=args.frames,
             scale=args.scale,
             lidar_density=args.lidar_density,
-            progress=progress,
+            host=args.host,
+            port=args.port,
+            on_synth=on_synth,
+            on_job=on_job,
+            keep_running=keep_running,
         )
     finally:
-        bar.close()
-    print(json.dumps(result["metrics"], indent=1))  # noqa: T201 - CLI output
-    print(f"archive: {result['archive']}")  # noqa: T201 - CLI output
+        synth_bar.close()
+        if job_bar is not None:
+            job_bar.close()
+    _print_demo(result, args.workdir, serving=args.serve)
+    return 0 if result["job"]["state"] == "SUCCEEDED" else 1
+
+
+# ---------------------------------------------------------------------------- serve, worker
+def _add_serve(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "serve",
+        help="run the API (uvicorn); migrates the database first unless --no-migrate",
+    )
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--workers", type=int, default=1, help="uvicorn worker processes")
+    p.add_argument("--no-migrate", action="store_true", help="skip alembic upgrade head")
+    p.set_defaults(func=cmd_serve)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from worker.jobs.settings import get_settings
+
+    if not args.no_migrate:
+        from worker.jobs.migrate import upgrade
+
+        upgrade(database_url=str(get_settings().database_url))
+    uvicorn.run("service.app:app", host=args.host, port=args.port, workers=args.workers)
+    return 0
+
+
+def _add_worker(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "worker",
+        help="run a Celery worker for the configured broker (BROKER_URL)",
+        description="A Celery worker on the osdar_ar queue. Start as many as you like, on "
+        "as many machines (they share DATABASE_URL, BROKER_URL and STORE_URL).",
+    )
+    p.add_argument("--concurrency", type=int, default=None, help="default: number of CPUs")
+    p.add_argument("--pool", choices=["prefork", "solo", "threads"], default="prefork")
+    p.add_argument("--loglevel", default="INFO")
+    p.add_argument("--hostname", default=None, help="worker node name (default celery@host)")
+    p.set_defaults(func=cmd_worker)
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    from worker.jobs.celery_app import QUEUE, celery_app
+
+    argv = ["worker", "--pool", args.pool, "--queues", QUEUE, "--loglevel", args.loglevel]
+    if args.concurrency is not None:
+        argv += ["--concurrency", str(args.concurrency)]
+    if args.hostname:
+        argv += ["--hostname", args.hostname]
+    celery_app.worker_main(argv)
     return 0
 
 
@@ -381,6 +524,194 @@ def cmd_prepare(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- augment
+def _add_augment(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "augment",
+        help="add a virtual obstacle to a sequence (cameras, lidar, annotations)",
+        description="Augment SEQ with a virtual object and write the result to OUT in the "
+        "OSDaR23 layout (every input file present: augmented where the object shows, "
+        "byte-identical elsewhere) plus OUT/metrics.json (per-stage timings; the object's "
+        "errors where SEQ has ground_truth/). The preparation is cached and reused.",
+    )
+    p.add_argument("sequence", type=Path)
+    p.add_argument(
+        "--object",
+        required=True,
+        help="built-in obstacle (person, rock, fallen_tree, cow, horse, elephant) or a "
+        "mesh file (.glb, .gltf, .obj, .ply)",
+    )
+    p.add_argument("--object-scale", type=float, default=1.0, help="uniform size factor")
+    p.add_argument("--mesh-units", type=float, default=None, help="metres per mesh file unit")
+    p.add_argument("--seed", type=int, default=0, help="seed of the built-in obstacle")
+    p.add_argument(
+        "--place",
+        default="s=40,offset=0,yaw=90",
+        help='track "s=40,offset=0,yaw=90" (m along the ego track from the first frame, '
+        'm left, deg from the track direction), world "mode=world,x=..,y=..,yaw=..", or '
+        'lidar frame "frame=12,x=..,y=..,yaw=.."',
+    )
+    p.add_argument("--cameras", default=None, help="comma-separated (default: the front ones)")
+    p.add_argument("--no-lidar", action="store_true", help="leave the point clouds unchanged")
+    p.add_argument("--frames", default=None, metavar="FIRST:LAST", help="frame range, inclusive")
+    p.add_argument("--strategy", default="auto", help="ins, odometry, rails, fused or auto")
+    p.add_argument(
+        "--lidar-origins",
+        default="single",
+        help="'single' (the base frame origin, the paper's fallback), 'x,y,z', or a "
+        "lidar_origins.json file of per-sensor origins",
+    )
+    p.add_argument("--clicks", type=Path, default=None, help="clicked landmark pixels file")
+    p.add_argument("--png-compression", type=int, default=1, help="zlib level 0-9")
+    p.add_argument("--no-blur", action="store_true")
+    p.add_argument("--no-lab-match", action="store_true")
+    p.add_argument("--shadow", type=float, default=0.6, help="shadow strength 0-1")
+    p.add_argument(
+        "--pixel-offset", action="store_true", help="compensate the calibration point's offset"
+    )
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    p.add_argument("--out", type=Path, required=True, help="output sequence folder")
+    p.add_argument("--force", action="store_true", help="replace OUT if it exists")
+    p.add_argument("--no-evaluate", action="store_true", help="skip the ground-truth errors")
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="cache of prepared artifacts (default $OSDAR_AR_CACHE_DIR or "
+        "~/.cache/osdar-ar/prepared)",
+    )
+    p.set_defaults(func=cmd_augment)
+
+
+def _augment_spec(args: argparse.Namespace) -> Any:
+    from pydantic import ValidationError
+
+    from worker.augmentation.placement import PlacementError
+    from worker.augmentation.spec import (
+        AugmentSpec,
+        ObjectSource,
+        PlacementModel,
+        RenderSpec,
+    )
+
+    try:
+        placement = PlacementModel.parse(args.place)
+    except PlacementError as exc:
+        raise CliError(str(exc)) from exc
+    frame_range = None
+    if args.frames:
+        try:
+            a, b = (int(x) for x in args.frames.split(":"))
+        except ValueError as exc:
+            raise CliError(f"--frames {args.frames!r}: expected FIRST:LAST") from exc
+        frame_range = (a, b)
+    clicks = None
+    if args.clicks is not None:
+        from worker.preparation.calibration_point import Clicks, ClicksError
+
+        try:
+            clicks = Clicks.load(args.clicks).to_json()
+        except (ClicksError, OSError) as exc:
+            raise CliError(f"--clicks {args.clicks}: {exc}") from exc
+    try:
+        return AugmentSpec(
+            object=ObjectSource.from_cli(
+                args.object, scale=args.object_scale, seed=args.seed, mesh_scale=args.mesh_units
+            ),
+            placement=placement,
+            cameras=None
+            if args.cameras is None
+            else tuple(c.strip() for c in args.cameras.split(",") if c.strip()),
+            lidar=not args.no_lidar,
+            frame_range=frame_range,
+            strategy=args.strategy,
+            lidar_origins=args.lidar_origins,
+            clicks=clicks,
+            render=RenderSpec(
+                png_compression=args.png_compression,
+                blur=not args.no_blur,
+                lab_match=not args.no_lab_match,
+                shadow_strength=args.shadow,
+                pixel_offset=args.pixel_offset,
+            ),
+        )
+    except ValidationError as exc:
+        msgs = "; ".join(
+            f"{'.'.join(str(x) for x in e['loc']) or 'spec'}: {e['msg']}" for e in exc.errors()
+        )
+        raise CliError(msgs) from exc
+
+
+def cmd_augment(args: argparse.Namespace) -> int:
+    from worker.augmentation.augment import AugmentError, augment
+    from worker.augmentation.placement import PlacementError
+    from worker.preparation.calibration_point import ClicksError
+    from worker.preparation.config import STRATEGY_NAMES
+    from worker.preparation.prepare import PreparationError
+
+    spec = _augment_spec(args)
+    if args.strategy not in STRATEGY_NAMES:
+        raise CliError(f"--strategy {args.strategy!r}: known {', '.join(STRATEGY_NAMES)}")
+    if args.out.exists() and not args.force:
+        raise CliError(f"{args.out} exists: choose another folder or pass --force")
+    if args.out.resolve() == args.sequence.resolve():
+        raise CliError("--out must not be the input sequence")
+    cache_dir = args.cache_dir or Path(
+        os.environ.get("OSDAR_AR_CACHE_DIR", Path.home() / ".cache/osdar-ar/prepared")
+    )
+    bar = _progress_bar(0, f"augment {args.sequence.name}")
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        metrics = augment(
+            args.sequence,
+            spec,
+            args.out,
+            cache_dir=cache_dir,
+            workers=max(1, args.workers),
+            progress=progress,
+            overwrite=args.force,
+            evaluate=not args.no_evaluate,
+        )
+    except PlacementError as exc:
+        raise CliError(f"--place {args.place!r}: {exc}") from exc
+    except (AugmentError, PreparationError, ClicksError) as exc:
+        raise CliError(str(exc)) from exc
+    finally:
+        bar.close()
+    t = metrics["timings_s"]
+    cams = ", ".join(
+        f"{c} visible in {v['visible_frames']} frames" for c, v in metrics["cameras"].items()
+    )
+    print(  # noqa: T201 - CLI output
+        f"wrote {args.out}: {metrics['object']['class']} annotated in "
+        f"{metrics['frames']['annotated']}/{metrics['frames']['total']} frames ({cams}) "
+        f"in {t['total']:.1f} s"
+    )
+    stages = {k: v for k, v in t.items() if isinstance(v, float) and k != "total"}
+    print("  stages: " + ", ".join(f"{k} {v:.2f} s" for k, v in stages.items()))  # noqa: T201
+    if metrics.get("lidar"):
+        li = metrics["lidar"]
+        print(  # noqa: T201 - CLI output
+            f"  lidar ({li['origins']} origin): {li['object_points_total']} object points "
+            f"in {li['frames_with_points']} frames"
+        )
+    for name, e in (metrics.get("object_errors") or {}).get("cameras", {}).items():
+        if e.get("anchor_px_mean") is None:
+            continue
+        print(  # noqa: T201 - CLI output
+            f"  {name}: anchor error {e['anchor_px_mean']:.2f} px mean, "
+            f"{e['anchor_px_max']:.2f} max; mask IoU {e['mask_iou_mean'] or 0:.3f} mean "
+            f"({e['frames']} frames, vs the true poses)"
+        )
+    for w in metrics.get("warnings", []):
+        print(f"  warning: {w}")  # noqa: T201 - CLI output
+    return 0
+
+
 # ---------------------------------------------------------------------------- keys
 def _add_keys(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("keys", help="manage API keys of the job service")
@@ -472,7 +803,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_synth(sub)
     _add_info(sub)
     _add_demo(sub)
+    _add_serve(sub)
+    _add_worker(sub)
     _add_prepare(sub)
+    _add_augment(sub)
     _add_keys(sub)
     _add_migrate(sub)
     return parser

@@ -35,7 +35,8 @@ class Settings(BaseSettings):
         env_prefix="OSDAR_AR_", extra="ignore", populate_by_name=True, validate_default=True
     )
 
-    environment: Literal["dev", "prod"] = "dev"
+    #: "test" enables test-only job-spec hooks (worker/jobs/runner.py); never deploy it.
+    environment: Literal["dev", "test", "prod"] = "dev"
     data_dir: Path = Path("./var")
 
     # --- where things live (None: derived from data_dir) ------------------------------
@@ -84,6 +85,9 @@ class Settings(BaseSettings):
     visibility_timeout_s: int = Field(8 * 3600, gt=0)
     visibility_margin_s: int = Field(600, ge=0)
     max_deliveries: int = Field(3, gt=0)
+    worker_max_memory_per_child_kib: int = Field(8 * 1024 * 1024, gt=0)  # recycle above
+    #: Frames per augmentation chunk (one chord member; chunks run on several workers).
+    frames_per_chunk: int = Field(25, gt=0)
 
     @model_validator(mode="after")
     def _derived(self) -> Settings:

@@ -1,0 +1,714 @@
+"""The job's stages as plain functions: what the Celery tasks call, and what runs inline.
+
+One job = one recipe (:func:`run_job_inline` reads it top to bottom)::
+
+    start_job        count the delivery, start attempt n (poison jobs stop here)
+    fetch_sequence   the sequence folder on this machine (shared path, or from the store)
+    prepare_for_job  poses, registered cloud, tracks, scene (cached per sequence + config)
+    augment_chunk    per chunk of frames: render, composite, lidar, annotations   [*]
+    finish_job       untouched files, labels, augmentation metrics                [*]
+    evaluate_job     RPE / jitter per camera (and true errors on synthetic data)
+    package_job      archive: output sequence + metrics.json + report + previews
+    publish_job      upload under an attempt-scoped key, then ONE conditional row update
+
+[*] when ``worker/augmentation/augment.py`` exists (:func:`augmentation_module`); until
+then the output sequence is the input sequence, packaged with its evaluation.
+
+Every stage runs inside :func:`_stage`: it checks that the attempt is still current and
+not cancelled, counts the stage's deliveries (a stage that keeps killing its worker fails
+the job), shows the stage on the job, times it, and turns errors into a FAILED job with a
+readable reason (:class:`~worker.jobs.state.JobFailed`) and cancellations into CANCELLED
+(partial outputs removed). Stages hold no DB session while they compute.
+
+Each stage can run on another machine than the previous one: it only needs the job id
+and the attempt; local inputs (the fetched sequence, the prepared artifact, the archive)
+are re-created from the store or the cache when missing.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import os
+import pickle
+import shutil
+import tarfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select
+
+from worker.jobs import state
+from worker.jobs.db import session_scope
+from worker.jobs.models import Job, JobState, Sequence
+from worker.jobs.settings import Settings, get_settings
+from worker.jobs.state import (
+    POISON_REASON,
+    JobCancelled,
+    JobFailed,
+    JobStop,
+    JobSuperseded,
+)
+from worker.jobs.store import ObjectStore, store_from_url
+
+log = logging.getLogger(__name__)
+
+AUGMENT_MODULE = "worker.augmentation.augment"
+ARCHIVE_NAME = "archive.tar.gz"
+#: Exit code of the test-only crash hook (a worker process killed mid-task).
+TEST_CRASH_EXIT_CODE = 70
+
+
+# ---------------------------------------------------------------------------- context
+@dataclass
+class JobRun:
+    """One attempt of one job on this machine: ids, settings, store, local folders."""
+
+    job_id: str
+    attempt: int
+    settings: Settings
+    _info: dict[str, Any] | None = field(default=None, repr=False)
+    _store: ObjectStore | None = field(default=None, repr=False)
+
+    @property
+    def store(self) -> ObjectStore:
+        if self._store is None:
+            self._store = store_from_url(str(self.settings.store_url), self.settings)
+        return self._store
+
+    @property
+    def workdir(self) -> Path:
+        """Local scratch of this attempt (removed on success, failure and cancel)."""
+        return Path(self.settings.cache_dir) / "jobs" / self.job_id / f"attempt-{self.attempt}"
+
+    @property
+    def prefix(self) -> str:
+        """Store prefix of this attempt's objects."""
+        return f"jobs/{self.job_id}/attempt-{self.attempt}/"
+
+    @property
+    def previews_prefix(self) -> str:
+        return f"jobs/{self.job_id}/previews/attempt-{self.attempt}/"
+
+    @property
+    def info(self) -> dict[str, Any]:
+        """The job's spec and its sequence's row (read once per run, short session)."""
+        if self._info is None:
+            with session_scope(self.settings) as s:
+                job = s.get(Job, self.job_id)
+                if job is None:
+                    raise JobSuperseded(f"job {self.job_id} does not exist")
+                seq = s.get(Sequence, job.sequence_id) if job.sequence_id else None
+                self._info = {
+                    "spec": dict(job.spec or {}),
+                    "progress_total": job.progress_total,
+                    "sequence": None
+                    if seq is None
+                    else {
+                        "id": seq.id,
+                        "name": seq.name,
+                        "path": seq.path,
+                        "content_key": seq.content_key,
+                        "validation": dict(seq.validation or {}),
+                    },
+                }
+        return self._info
+
+    @property
+    def spec(self) -> dict[str, Any]:
+        return self.info["spec"]
+
+
+def _run(job_id: str, attempt: int | None, settings: Settings | None) -> JobRun:
+    settings = settings or get_settings()
+    if attempt is None:
+        attempt = state.current_attempt(job_id, settings=settings)
+    return JobRun(job_id, attempt, settings)
+
+
+# ---------------------------------------------------------------------------- stages
+class StageError(Exception):
+    """A problem of the job's input or spec, with a message for the user."""
+
+
+def describe_error(stage: str, exc: BaseException) -> str:
+    """A readable failure reason: the user's problem said plainly, ours named as such."""
+    from worker.jobs.archive_safety import UnsafeArchive
+    from worker.jobs.store import StoreError
+    from worker.osdar.errors import SequenceError
+
+    name = type(exc).__name__
+    if name == "SoftTimeLimitExceeded":
+        return f"{stage}: the job exceeded its time limit"
+    user_errors: tuple[type[BaseException], ...] = (
+        StageError,
+        SequenceError,
+        UnsafeArchive,
+        StoreError,
+    )
+    try:
+        from worker.preparation.calibration_point import ClicksError
+        from worker.preparation.prepare import PreparationError
+
+        user_errors += (PreparationError, ClicksError)
+    except ImportError:  # pragma: no cover - the pipeline is always installed on workers
+        pass
+    mod = augmentation_module()
+    if mod is not None:
+        from worker.augmentation.placement import PlacementError
+
+        user_errors += (mod.AugmentError, PlacementError)
+    if isinstance(exc, user_errors):
+        return f"{stage}: {exc}"
+    return f"{stage}: internal error ({name}: {exc})"
+
+
+def _test_hook(run: JobRun, stage: str) -> None:
+    """Test-only spec flags (``spec["_test"]``), honoured only in environment "test".
+
+    ``crash_in``: the worker process exits at once in that stage (a poison input);
+    ``fail_in``: the stage raises; ``sleep_in``: {stage: seconds} before the stage's work.
+    """
+    if run.settings.environment != "test":
+        return
+    hooks = run.spec.get("_test")
+    if not isinstance(hooks, dict):
+        return
+    if hooks.get("crash_in") == stage:
+        log.error("test hook: killing this worker process in stage %s", stage)
+        os._exit(TEST_CRASH_EXIT_CODE)
+    if hooks.get("fail_in") == stage:
+        raise RuntimeError(f"test hook: failure in {stage}")
+    delay = (hooks.get("sleep_in") or {}).get(stage)
+    if delay:
+        time.sleep(float(delay))
+
+
+def cleanup_attempt(run: JobRun, *, keep: frozenset[str] = frozenset()) -> None:
+    """Remove this attempt's local scratch and its store objects (except ``keep``)."""
+    shutil.rmtree(run.workdir, ignore_errors=True)
+    for prefix in (run.prefix, run.previews_prefix):
+        try:
+            for key in run.store.list(prefix):
+                if key not in keep:
+                    run.store.delete(key)
+        except Exception as exc:  # the row is what users see; orphans are only space
+            log.warning("job %s: could not remove %s*: %s", run.job_id, prefix, exc)
+
+
+@contextmanager
+def _stage(run: JobRun, name: str, *, count_delivery: bool = True) -> Iterator[None]:
+    """Guard, show, time one stage; map its outcome onto the job (module docstring)."""
+    s = run.settings
+    try:
+        state.check_attempt(run.job_id, run.attempt, settings=s)
+        if count_delivery:
+            n = state.count_stage_delivery(run.job_id, run.attempt, name, settings=s)
+            if n > s.max_deliveries:
+                reason = f"{POISON_REASON} (stage {name} delivered {n} times)"
+                state.mark_failed(run.job_id, reason, settings=s, attempt=run.attempt)
+                cleanup_attempt(run)
+                raise JobFailed(reason)
+        state.set_stage(run.job_id, run.attempt, name, settings=s)
+        _test_hook(run, name)
+        t0 = time.perf_counter()
+        yield
+        state.record_timing(run.job_id, run.attempt, name, time.perf_counter() - t0, settings=s)
+    except (JobSuperseded, JobFailed):
+        raise
+    except JobCancelled:
+        cleanup_attempt(run)
+        state.mark_cancelled(run.job_id, settings=s, attempt=run.attempt)
+        log.info("job %s cancelled in stage %s", run.job_id, name)
+        raise
+    except Exception as exc:
+        reason = describe_error(name, exc)
+        log.exception("job %s attempt %d failed in %s", run.job_id, run.attempt, name)
+        state.mark_failed(run.job_id, reason, settings=s, attempt=run.attempt)
+        cleanup_attempt(run)
+        raise JobFailed(reason) from exc
+
+
+# ---------------------------------------------------------------------------- start
+def start_job(job_id: str, *, settings: Settings | None = None) -> int:
+    """Count this delivery and start a new attempt; returns its number (see state.py)."""
+    settings = settings or get_settings()
+    attempt = state.mark_running(job_id, settings=settings)
+    _test_hook(JobRun(job_id, attempt, settings), "run_job")
+    return attempt
+
+
+def job_frames(run: JobRun, frame_indices: list[int] | None = None) -> list[int]:
+    """The frames the job augments: the sequence's, within ``spec.frame_range``."""
+    if frame_indices is None:
+        seq = run.info["sequence"] or {}
+        frame_indices = list((seq.get("validation") or {}).get("frame_indices") or [])
+    rng = run.spec.get("frame_range")
+    if rng is None:
+        return sorted(frame_indices)
+    lo, hi = int(rng[0]), int(rng[1])
+    return sorted(f for f in frame_indices if lo <= f <= hi)
+
+
+def plan_chunks(
+    job_id: str, *, attempt: int | None = None, settings: Settings | None = None
+) -> list[list[int]]:
+    """The job's frames split into chunks of ``settings.frames_per_chunk``."""
+    run = _run(job_id, attempt, settings)
+    frames = job_frames(run)
+    n = run.settings.frames_per_chunk
+    return [frames[i : i + n] for i in range(0, len(frames), n)]
+
+
+# ---------------------------------------------------------------------------- fetch
+def _local_sequence(run: JobRun) -> Path:
+    """The sequence folder on this machine: its registered path, or its upload fetched."""
+    from worker.osdar.sequence import find_labels_file
+    from worker.preparation.artifact import key_lock
+
+    seq = run.info["sequence"]
+    if seq is None:
+        raise StageError("the job's sequence was deleted")
+    folder = Path(seq["path"])
+    if folder.is_dir():
+        return folder
+    if not seq["content_key"]:
+        raise StageError(f"sequence folder {folder} is not readable on this worker")
+    from worker.jobs.archive_safety import ArchiveLimits, extract_archive
+
+    base = Path(run.settings.cache_dir) / "sequences" / seq["id"]
+    marker = base / "root.txt"
+    with key_lock(base.parent, f"sequence-{seq['id']}"):
+        if marker.is_file():
+            return base / marker.read_text().strip()
+        shutil.rmtree(base, ignore_errors=True)
+        base.mkdir(parents=True)
+        archive = base / "source.archive"
+        run.store.get_file(seq["content_key"], archive)
+        result = extract_archive(archive, base / "tree", ArchiveLimits.from_settings(run.settings))
+        archive.unlink()
+        root = result.root
+        find_labels_file(root)  # a clear error now rather than in preparation
+        marker.write_text(root.relative_to(base).as_posix())
+        return root
+
+
+def fetch_sequence(
+    job_id: str, *, attempt: int | None = None, settings: Settings | None = None
+) -> Path:
+    """Make the job's sequence readable here (cached per sequence); returns its folder."""
+    run = _run(job_id, attempt, settings)
+    with _stage(run, "fetch"):
+        return _local_sequence(run)
+
+
+# ---------------------------------------------------------------------------- prepare
+def _prepare(run: JobRun, progress: Any = None) -> Any:
+    """The prepared sequence of the job (from the per-key cache when it is there)."""
+    from worker.preparation.calibration_point import Clicks
+    from worker.preparation.config import PrepareConfig
+    from worker.preparation.prepare import prepare
+
+    spec = run.spec
+    config = PrepareConfig(strategy=spec.get("strategy") or "auto")
+    clicks = None
+    if spec.get("clicks"):
+        # the landmark's name is part of the cache key: the augmentation's own name for it
+        clicks = Clicks.from_json({"landmark": "job", "clicks": spec["clicks"]}, "spec.clicks")
+    return prepare(
+        _local_sequence(run),
+        config,
+        clicks=clicks,
+        cache_dir=Path(run.settings.cache_dir) / "prepared",
+        progress=progress,
+    )
+
+
+def prepare_for_job(
+    job_id: str, *, attempt: int | None = None, settings: Settings | None = None
+) -> Any:
+    """Preparation of the job's sequence (shared by every job on it); returns it."""
+    run = _run(job_id, attempt, settings)
+    with _stage(run, "prepare"):
+
+        def progress(sub: str, done: int, total: int) -> None:
+            state.check_attempt(run.job_id, run.attempt, settings=run.settings)
+            state.set_stage(run.job_id, run.attempt, f"prepare: {sub}", settings=run.settings)
+
+        prepared = _prepare(run, progress)
+        s = prepared.summary
+        state.merge_metrics(
+            run.job_id,
+            run.attempt,
+            {
+                "preparation": {
+                    "key": prepared.key,
+                    "reused": bool(s.get("reused")),
+                    "strategy": prepared.strategy,
+                    "seconds": s.get("total_seconds"),
+                    "warnings": len(s.get("warnings", [])),
+                }
+            },
+            settings=run.settings,
+        )
+        return prepared
+
+
+# ---------------------------------------------------------------------------- augment
+def augmentation_module() -> Any | None:
+    """``worker.augmentation.augment`` when it exists (the one place it is plugged in)."""
+    try:
+        return importlib.import_module(AUGMENT_MODULE)
+    except ModuleNotFoundError as exc:
+        if exc.name == AUGMENT_MODULE:
+            return None
+        raise
+
+
+def _augment_spec(run: JobRun, mod: Any) -> Any:
+    """The augmentation's spec from the job spec (an uploaded mesh read from the store)."""
+    from worker.jobs.models import Asset
+
+    spec = run.spec
+    asset_id = (spec.get("object") or {}).get("asset_id")
+    if asset_id is None:
+        return mod.AugmentSpec.from_job_spec(spec)
+    with session_scope(run.settings) as s:
+        asset = s.get(Asset, asset_id)
+        where = None if asset is None else (asset.store_key, asset.file_type)
+    if where is None:
+        raise StageError(f"asset {asset_id} was deleted")
+    data = b"".join(run.store.open_read(where[0]))
+    return mod.AugmentSpec.from_job_spec(spec, mesh_bytes=data, file_type=where[1])
+
+
+def _plan(run: JobRun, mod: Any) -> Any:
+    """The augmentation plan of this attempt: computed once, shared through the store.
+
+    Every chunk needs it; the first worker to need it computes and uploads it (a race
+    only computes the same plan twice), the others download it.
+    """
+    local = run.workdir / "plan.pkl"
+    key = f"{run.prefix}plan.pkl"
+    if not local.is_file():
+        local.parent.mkdir(parents=True, exist_ok=True)
+        if run.store.exists(key):
+            run.store.get_file(key, local)
+        else:
+            prepared = _prepare(run)
+            plan = mod.plan_augmentation(_local_sequence(run), _augment_spec(run, mod), prepared)
+            if prepared.calibration is not None:
+                plan.info["calibration"] = prepared.calibration.summary()
+            tmp = local.with_suffix(".part")
+            tmp.write_bytes(pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL))
+            run.store.put_file(key, tmp)
+            tmp.replace(local)
+            return plan
+    # Our own workers wrote it into our own store under this attempt's key.
+    return pickle.loads(local.read_bytes())
+
+
+def _chunk_dir(run: JobRun, index: int) -> Path:
+    return run.workdir / "chunks" / f"{index:04d}"
+
+
+def augment_chunk(
+    job_id: str,
+    index: int,
+    frames: list[int],
+    *,
+    attempt: int | None = None,
+    settings: Settings | None = None,
+) -> dict[str, Any]:
+    """Augment one chunk of frames (any worker); its files and records go to the store.
+
+    Returns ``{"index", "frames", "files", "records"}``: store keys, JSON for the chord.
+    """
+    mod = augmentation_module()
+    if mod is None:
+        raise RuntimeError(f"{AUGMENT_MODULE} is not installed")
+    run = _run(job_id, attempt, settings)
+    with _stage(run, f"augment[{index}]"):
+        state.set_stage(run.job_id, run.attempt, "augment", settings=run.settings)
+        plan = _plan(run, mod)
+        out = _chunk_dir(run, index)
+        shutil.rmtree(out, ignore_errors=True)
+        out.mkdir(parents=True)
+        result = None
+        for f in frames:  # one frame at a time: progress, and a cancel stops here
+            state.check_attempt(run.job_id, run.attempt, settings=run.settings)
+            part = mod.augment_frames(plan, [f], out)
+            if result is None:
+                result = part
+            else:
+                result.files += part.files
+                result.frames += part.frames
+                result.seconds += part.seconds
+            state.add_progress(run.job_id, run.attempt, 1, settings=run.settings)
+        files_key = f"{run.prefix}chunks/{index:04d}.tar"
+        records_key = f"{run.prefix}chunks/{index:04d}.pkl"
+        tar_path = out.with_suffix(".tar")
+        with tarfile.open(tar_path, "w") as tar:
+            tar.add(out, arcname=".")
+        run.store.put_file(files_key, tar_path)
+        tar_path.unlink(missing_ok=True)
+        run.store.put_bytes(records_key, pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL))
+        (out.parent / f"{index:04d}.done").write_text("ok")
+        return {"index": index, "frames": list(frames), "files": files_key, "records": records_key}
+
+
+def _output_folder(run: JobRun) -> Path:
+    return run.workdir / "output" / (run.info["sequence"] or {}).get("name", "sequence")
+
+
+def _chunk_results(run: JobRun, chunks: list[dict[str, Any]]) -> list[Any]:
+    """Every chunk's records, with its files on this machine (downloaded if need be)."""
+    from worker.jobs.archive_safety import ArchiveLimits, extract_archive
+
+    out = []
+    for c in sorted(chunks, key=lambda c: c["index"]):
+        folder = _chunk_dir(run, c["index"])
+        if not (folder.parent / f"{c['index']:04d}.done").is_file():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.parent.mkdir(parents=True, exist_ok=True)
+            tar_path = folder.with_suffix(".tar")
+            run.store.get_file(c["files"], tar_path)
+            extract_archive(tar_path, folder, ArchiveLimits.from_settings(run.settings))
+            tar_path.unlink(missing_ok=True)
+        result = pickle.loads(b"".join(run.store.open_read(c["records"])))
+        result.root = str(folder)
+        out.append(result)
+    return out
+
+
+def _assemble_output(run: JobRun, chunks: list[dict[str, Any]]) -> tuple[Path, dict[str, Any]]:
+    """The complete output sequence from the chunks (the augmentation's finish)."""
+    mod = augmentation_module()
+    out = _output_folder(run)
+    shutil.rmtree(out.parent, ignore_errors=True)
+    out.parent.mkdir(parents=True)
+    plan = _plan(run, mod)
+    results = _chunk_results(run, chunks)
+    metrics = mod.finish_augmentation(plan, results, out, overwrite=True)
+    shutil.rmtree(run.workdir / "chunks", ignore_errors=True)
+    (out.parent / ".complete").write_text("ok")
+    return out, json.loads(json.dumps(metrics, default=str))
+
+
+def finish_job(
+    job_id: str,
+    chunks: list[dict[str, Any]],
+    *,
+    attempt: int | None = None,
+    settings: Settings | None = None,
+) -> dict[str, Any]:
+    """After every chunk: the complete output sequence and the augmentation metrics."""
+    run = _run(job_id, attempt, settings)
+    with _stage(run, "finish"):
+        if any(c.get("stopped") for c in chunks):
+            raise JobSuperseded(f"job {job_id}: a chunk stopped the attempt")
+        index = json.dumps(sorted(chunks, key=lambda c: c["index"])).encode()
+        run.store.put_bytes(f"{run.prefix}chunks/index.json", index)
+        _, metrics = _assemble_output(run, chunks)
+        update = {"augmentation": metrics}
+        state.merge_metrics(run.job_id, run.attempt, update, settings=run.settings)
+        return {"frames": len(metrics.get("frames") or {})}
+
+
+def output_sequence(run: JobRun) -> Path:
+    """The folder to package: the augmented sequence, or the input before augmentation."""
+    if augmentation_module() is None:
+        return _local_sequence(run)
+    out = _output_folder(run)
+    if (out.parent / ".complete").is_file():
+        return out
+    # finished on another worker: rebuild it here from the chunks in the store
+    index = b"".join(run.store.open_read(f"{run.prefix}chunks/index.json"))
+    out, _ = _assemble_output(run, json.loads(index))
+    return out
+
+
+# ---------------------------------------------------------------------------- evaluate
+def evaluate_job(
+    job_id: str, *, attempt: int | None = None, settings: Settings | None = None
+) -> dict[str, Any]:
+    """RPE / jitter of the job's poses (and true errors on synthetic data) -> metrics."""
+    from worker.evaluate import evaluate_sequence
+
+    run = _run(job_id, attempt, settings)
+    with _stage(run, "evaluate"):
+        seq_folder = _local_sequence(run)
+        prepared = _prepare(run)
+        cameras = list(run.spec.get("cameras") or [])
+        metrics, series = evaluate_sequence(seq_folder, prepared, cameras)
+        seq = run.info["sequence"] or {}
+        update = {
+            "sequence": {
+                "id": seq.get("id"),
+                "name": seq.get("name"),
+                "frames": len(job_frames(run)),
+            },
+            "evaluation": {**metrics, "per_frame": series},
+        }
+        state.merge_metrics(run.job_id, run.attempt, update, settings=run.settings)
+        return update
+
+
+# ---------------------------------------------------------------------------- package
+def _archive_path(run: JobRun) -> Path:
+    return run.workdir / ARCHIVE_NAME
+
+
+def _report(run: JobRun, metrics: dict[str, Any]) -> dict[str, Path]:
+    """metrics.json, the RPE/jitter plot, previews, preparation summary -> {arcname: file}."""
+    from worker.evaluate import plot_rpe_jitter
+    from worker.package import make_previews
+
+    report = run.workdir / "report"
+    shutil.rmtree(report, ignore_errors=True)
+    report.mkdir(parents=True)
+    files: dict[str, Path] = {}
+    (report / "metrics.json").write_text(json.dumps(metrics, indent=1, sort_keys=True))
+    files["metrics.json"] = report / "metrics.json"
+    series = (metrics.get("evaluation") or {}).get("per_frame") or {}
+    title = f"RPE and jitter, strategy {(metrics.get('evaluation') or {}).get('strategy')}"
+    plot = plot_rpe_jitter(series, report / "previews" / "rpe_jitter.png", title)
+    if plot is not None:
+        files["report/rpe_jitter.png"] = plot
+    out = output_sequence(run)
+    cameras = list(run.spec.get("cameras") or [])
+    for p in make_previews(out, cameras, report / "previews", lidar=bool(run.spec.get("lidar"))):
+        files[f"report/previews/{p.name}"] = p
+    prep_summary = Path(run.settings.cache_dir) / "prepared"
+    key = (metrics.get("preparation") or {}).get("key")
+    if key and (prep_summary / key / "summary.json").is_file():
+        files["report/preparation.json"] = prep_summary / key / "summary.json"
+    return files
+
+
+def package_job(
+    job_id: str, *, attempt: int | None = None, settings: Settings | None = None
+) -> Path:
+    """The archive of the job's output (OSDaR23 layout + metrics.json + report)."""
+    run = _run(job_id, attempt, settings)
+    with _stage(run, "package"):
+        return _package(run)
+
+
+def _package(run: JobRun) -> Path:
+    from worker.package import build_archive
+
+    metrics = state.get_metrics(run.job_id, settings=run.settings)
+    extra = _report(run, metrics)
+    augmented = augmentation_module() is not None
+    total = run.info["progress_total"]
+
+    def progress(done: int, files: int) -> None:
+        if not augmented and total:  # the frame-wise stage until augmentation exists
+            state.check_attempt(run.job_id, run.attempt, settings=run.settings)
+            frames = total * done // max(files, 1)
+            state.set_progress(run.job_id, run.attempt, frames, settings=run.settings)
+
+    return build_archive(output_sequence(run), _archive_path(run), extra=extra, progress=progress)
+
+
+# ---------------------------------------------------------------------------- publish
+def upload_and_publish(run: JobRun, archive: Path) -> str | None:
+    """Upload under this attempt's keys, then the one conditional update that publishes.
+
+    Returns the published key if this attempt's result is the job's result, else None
+    (another attempt won: this attempt's objects are deleted).
+    """
+    key = f"{run.prefix}{ARCHIVE_NAME}"
+    run.store.put_file(key, archive)
+    previews = []
+    folder = run.workdir / "report" / "previews"
+    for p in sorted(folder.glob("*.png")) if folder.is_dir() else []:
+        pkey = f"{run.previews_prefix}{p.name}"
+        run.store.put_file(pkey, p)
+        previews.append(pkey)
+    won = state.publish_result(
+        run.job_id, run.attempt, key, settings=run.settings, previews=previews
+    )
+    with session_scope(run.settings) as s:
+        published = s.scalar(select(Job.result_key).where(Job.id == run.job_id))
+    if won or published == key:
+        _remove_orphans(run, keep={key, *previews})
+        shutil.rmtree(run.workdir, ignore_errors=True)
+        return key
+    log.info("job %s attempt %d: another attempt published first", run.job_id, run.attempt)
+    cleanup_attempt(run)
+    return None
+
+
+def _remove_orphans(run: JobRun, keep: set[str]) -> None:
+    """Every object of the job but the published ones (other attempts, chunk files)."""
+    try:
+        for key in run.store.list(f"jobs/{run.job_id}/"):
+            if key not in keep:
+                run.store.delete(key)
+    except Exception as exc:
+        log.warning("job %s: orphan cleanup failed: %s", run.job_id, exc)
+
+
+def publish_job(
+    job_id: str,
+    archive: str | Path | None = None,
+    *,
+    attempt: int | None = None,
+    settings: Settings | None = None,
+) -> str | None:
+    """Publish the archive (re-made here when it is on another machine); returns its key."""
+    run = _run(job_id, attempt, settings)
+    with _stage(run, "publish"):
+        path = Path(archive) if archive else None
+        if path is None or not path.is_file():
+            path = _package(run)
+        return upload_and_publish(run, path)
+
+
+# ---------------------------------------------------------------------------- inline
+def run_job_inline(job_id: str, *, settings: Settings | None = None) -> JobState:
+    """The whole job in this process, without Celery (CLI, tests); returns its end state."""
+    settings = settings or get_settings()
+    try:
+        attempt = start_job(job_id, settings=settings)
+        kw: dict[str, Any] = {"attempt": attempt, "settings": settings}
+        fetch_sequence(job_id, **kw)
+        prepare_for_job(job_id, **kw)
+        if augmentation_module() is not None:
+            chunks = [
+                augment_chunk(job_id, i, frames, **kw)
+                for i, frames in enumerate(plan_chunks(job_id, **kw))
+            ]
+            finish_job(job_id, chunks, **kw)
+        evaluate_job(job_id, **kw)
+        archive = package_job(job_id, **kw)
+        publish_job(job_id, archive, **kw)
+    except JobStop as stop:
+        log.info("job %s stopped: %s", job_id, stop)
+    with session_scope(settings) as s:
+        return JobState(s.scalar(select(Job.state).where(Job.id == job_id)))
+
+
+__all__ = [
+    "JobRun",
+    "augment_chunk",
+    "augmentation_module",
+    "cleanup_attempt",
+    "evaluate_job",
+    "fetch_sequence",
+    "finish_job",
+    "package_job",
+    "plan_chunks",
+    "prepare_for_job",
+    "publish_job",
+    "run_job_inline",
+    "start_job",
+    "upload_and_publish",
+]

@@ -1,0 +1,140 @@
+"""Celery tasks: thin wrappers over the plain functions of ``worker/jobs/runner.py``.
+
+Tasks get ids (job id, attempt), never objects. ``osdar_ar.run_job`` is what the API
+sends (task id = job id); it starts an attempt and launches the job's stages as one
+workflow::
+
+    fetch -> prepare -> chord(augment_chunk x N) -> finish -> evaluate -> package -> publish
+                        '------ when worker/augmentation/augment.py exists ------'
+
+A stage that stops the job (cancelled, failed, superseded by a newer attempt) raises
+``Ignore``: the message is acknowledged and the rest of the workflow is not sent. The job
+row already says why. Chunk tasks return a "stopped" marker instead, so that the chord
+always completes and its ``finish`` sees the stop at its own checkpoint.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from celery import Task, chain, chord, shared_task
+from celery.exceptions import Ignore
+
+from worker.jobs import runner, state
+from worker.jobs.queue import TASK_RUN_JOB
+from worker.jobs.settings import get_settings
+from worker.jobs.state import JobStop
+
+log = logging.getLogger(__name__)
+
+TASK_FETCH = "osdar_ar.fetch"
+TASK_PREPARE = "osdar_ar.prepare"
+TASK_AUGMENT_CHUNK = "osdar_ar.augment_chunk"
+TASK_FINISH = "osdar_ar.finish"
+TASK_EVALUATE = "osdar_ar.evaluate"
+TASK_PACKAGE = "osdar_ar.package"
+TASK_PUBLISH = "osdar_ar.publish"
+TASK_NAMES = (
+    TASK_RUN_JOB,
+    TASK_FETCH,
+    TASK_PREPARE,
+    TASK_AUGMENT_CHUNK,
+    TASK_FINISH,
+    TASK_EVALUATE,
+    TASK_PACKAGE,
+    TASK_PUBLISH,
+)
+
+
+class JobTask(Task):
+    """Every job task: acknowledged late, put back when its worker process dies."""
+
+    acks_late = True
+    reject_on_worker_lost = True
+    ignore_result = True
+
+
+def _stage(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    try:
+        return fn(*args, **kwargs)
+    except JobStop as stop:
+        log.info("%s stopped the job: %s", getattr(fn, "__name__", fn), stop)
+        raise Ignore() from stop
+
+
+def workflow(app: Any, job_id: str, attempt: int, chunks: list[list[int]]) -> Any:
+    """The stages of one attempt as a Celery canvas (module docstring)."""
+
+    def step(name: str, *args: Any, immutable: bool = True) -> Any:
+        return app.signature(name, args=args, immutable=immutable)
+
+    stages = [step(TASK_FETCH, job_id, attempt), step(TASK_PREPARE, job_id, attempt)]
+    if chunks:  # the augmentation exists: frames in parallel, then finish
+        header = [step(TASK_AUGMENT_CHUNK, job_id, attempt, i, f) for i, f in enumerate(chunks)]
+        stages.append(chord(header, step(TASK_FINISH, job_id, attempt, immutable=False)))
+    stages += [
+        step(TASK_EVALUATE, job_id, attempt),
+        step(TASK_PACKAGE, job_id, attempt),
+        step(TASK_PUBLISH, job_id, attempt, immutable=False),  # gets the archive path
+    ]
+    return chain(*stages)
+
+
+@shared_task(name=TASK_RUN_JOB, bind=True, base=JobTask)
+def run_job(self: Task, job_id: str) -> None:
+    """Start an attempt (poison jobs are FAILED here) and launch its stages."""
+    attempt = _stage(runner.start_job, job_id)
+    try:
+        chunks = runner.plan_chunks(job_id, attempt=attempt)
+        if runner.augmentation_module() is None:
+            chunks = []
+        workflow(self.app, job_id, attempt, chunks).apply_async()
+    except Exception as exc:
+        state.mark_failed(
+            job_id, f"start: could not schedule the stages ({exc})", attempt=attempt,
+            settings=get_settings(),
+        )  # fmt: skip
+        raise Ignore() from exc
+
+
+@shared_task(name=TASK_FETCH, base=JobTask)
+def fetch(job_id: str, attempt: int) -> str:
+    return str(_stage(runner.fetch_sequence, job_id, attempt=attempt))
+
+
+@shared_task(name=TASK_PREPARE, base=JobTask)
+def prepare(job_id: str, attempt: int) -> str:
+    return str(_stage(runner.prepare_for_job, job_id, attempt=attempt).key)
+
+
+@shared_task(name=TASK_AUGMENT_CHUNK, base=JobTask, ignore_result=False)
+def augment_chunk(job_id: str, attempt: int, index: int, frames: list[int]) -> dict[str, Any]:
+    try:
+        return runner.augment_chunk(job_id, index, frames, attempt=attempt)
+    except JobStop as stop:  # never raise in a chord header: the chord must complete
+        return {"index": index, "stopped": True, "reason": str(stop)}
+
+
+@shared_task(name=TASK_FINISH, base=JobTask)
+def finish(chunks: list[dict[str, Any]], job_id: str, attempt: int) -> dict[str, Any]:
+    return _stage(runner.finish_job, job_id, chunks, attempt=attempt)
+
+
+@shared_task(name=TASK_EVALUATE, base=JobTask)
+def evaluate(job_id: str, attempt: int) -> None:
+    _stage(runner.evaluate_job, job_id, attempt=attempt)
+
+
+@shared_task(name=TASK_PACKAGE, base=JobTask)
+def package(job_id: str, attempt: int) -> str:
+    return str(_stage(runner.package_job, job_id, attempt=attempt))
+
+
+@shared_task(name=TASK_PUBLISH, base=JobTask)
+def publish(archive: str | None, job_id: str, attempt: int) -> str | None:
+    return _stage(runner.publish_job, job_id, archive, attempt=attempt)
+
+
+__all__ = ["TASK_NAMES", "run_job", "workflow"]
