@@ -33,6 +33,7 @@ class RegistrationConfig(_Section):
     max_range: float = Field(80.0, gt=0.0)  # m from the base origin
     pre_voxel_size: float | None = Field(None, gt=0.0)  # m, pre-registration (default 2.5 x)
     frame_step: int = Field(2, ge=1)  # every k-th frame for the final cloud (10 Hz overlaps)
+    lateral_limit: float | None = Field(30.0, gt=0.0)  # m, |y| in the base frame kept
     pre_frame_step: int = Field(4, ge=1)  # every k-th frame for the pre-registration
     pre_poses: Literal["odometry", "ins"] = "odometry"  # poses of the pre-registration
 
@@ -141,4 +142,8 @@ class PrepareConfig(_Section):
         """Arguments of ``register_clouds`` for the final or the pre-registration."""
         r = self.registration
         voxel = r.voxel_size if final else r.pre_voxel_size
-        return {"voxel_size": float(voxel), "max_range": float(r.max_range)}
+        return {
+            "voxel_size": float(voxel),
+            "max_range": float(r.max_range),
+            "lateral_limit": None if r.lateral_limit is None else float(r.lateral_limit),
+        }

@@ -91,6 +91,7 @@ def register_clouds(
     max_range: float | None = None,
     sensors: Iterable[int] | None = None,
     clouds: FrameClouds | None = None,
+    lateral_limit: float | None = None,
 ) -> RegisteredCloud:
     """Merge the frames' clouds into the world frame with ``track`` (T_world_base).
 
@@ -109,6 +110,8 @@ def register_clouds(
     sensors : sensor_index values to keep (default all).
     clouds : the frames' clouds already read and filtered (a FrameClouds of the same
         sequence); read from the files when None.
+    lateral_limit : drop points with |y| beyond this in the base frame (m): everything
+        preparation builds lies in a corridor along the track.
     """
     lidar = seq.lidar_stream
     if lidar is None:
@@ -124,6 +127,8 @@ def register_clouds(
         mask = np.isfinite(p_base).all(axis=1)
         if max_range is not None:
             mask &= np.einsum("ij,ij->i", p_base, p_base) <= max_range**2
+        if lateral_limit is not None:
+            mask &= np.abs(p_base[:, 1]) <= lateral_limit
         if keep_sensors is not None:
             mask &= np.isin(si, keep_sensors)
         p_world = transform_points(T, p_base[mask])
