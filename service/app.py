@@ -13,6 +13,7 @@ from typing import Any
 
 from fastapi import APIRouter, FastAPI
 
+from service.dashboard import install_dashboard
 from service.deps import Dispatcher
 from service.errors import install_handlers
 from service.ratelimit import TokenBuckets
@@ -76,6 +77,7 @@ def create_app(
     for module in (health, sequences, assets, jobs):
         v1.include_router(module.router)
     app.include_router(v1)
+    install_dashboard(app)
     return app
 
 

@@ -68,11 +68,13 @@ def test_prod_refuses_default_secret_and_sqlite(tmp_path: Path) -> None:
         Settings(environment="prod", data_dir=tmp_path)
     msg = str(err.value)
     assert "PEPPER" in msg and "SQLite" in msg and "SEQUENCE_ROOTS" in msg
+    assert "DASHBOARD_SECRET" in msg
     ok = Settings(
         environment="prod",
         database_url="postgresql://u@db/osdar",
         broker_url="redis://redis:6379/0",
         api_key_pepper="a-real-secret",
+        dashboard_secret="another-real-secret",
         sequence_roots=[tmp_path],
     )
     assert ok.api_key_pepper.get_secret_value() != DEFAULT_PEPPER

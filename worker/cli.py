@@ -241,10 +241,7 @@ def _print_demo(result: dict[str, Any], workdir: Path, serving: bool = False) ->
             f"archive: {result['archive']} ({c['bytes'] / 1e6:.1f} MB, {c['files']} files: "
             f"{c['images']} images, {c['clouds']} clouds, {c['previews']} previews) - checked"
         )
-    if result.get("dashboard"):
-        out(f"dashboard: {result['dashboard']}")
-    else:
-        out(f"dashboard: not in this build yet; the API's docs: {result['docs']}")
+    out(f"dashboard: {result['api']}/dashboard (log in with an API key); docs: {result['docs']}")
     if not serving:
         out("  (the service has stopped: `osdar-ar demo --serve` keeps it up)")
 
@@ -792,6 +789,157 @@ def cmd_migrate(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- evaluate
+def _add_evaluate(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "evaluate",
+        help="RPE and jitter per camera and strategy (the paper's definition), true errors",
+        description="Prepare SEQ with every strategy (cached), then for every camera, "
+        "strategy and landmark: the calibration point (the cloud point registered with that "
+        "strategy's poses nearest to the clicks), RPE_i and jitter J_i per frame, mean and "
+        "std. Clicks come from --clicks files (CSV / JSON, see the README) or, on synthetic "
+        "sequences, from ground_truth/landmarks.json (landmarks --near..--far m ahead). "
+        "Writes OUT/metrics.json, OUT/per_frame.csv, OUT/rpe.png and OUT/overlays/*.png.",
+    )
+    p.add_argument("sequence", type=Path)
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--strategies", default="ins,odometry,rails,fused", help="comma-separated")
+    p.add_argument(
+        "--clicks", type=Path, action="append", default=[],
+        help="clicks file of one landmark (repeatable); default: ground truth (synthetic)",
+    )  # fmt: skip
+    p.add_argument("--cameras", default=None, help="comma-separated (default: clicked ones)")
+    p.add_argument("--near", type=float, default=30.0, help="m, synthetic landmarks from")
+    p.add_argument("--far", type=float, default=80.0, help="m, synthetic landmarks to")
+    p.add_argument("--click-noise", type=float, default=0.0, help="px, synthetic click noise")
+    p.add_argument("--max-landmarks", type=int, default=8)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--voxel-size", type=float, default=None, help="m, registered cloud voxel")
+    p.add_argument(
+        "--overlay-frames", default=None, help="comma-separated frames (default: 3 per camera)"
+    )
+    p.add_argument("--no-overlay", action="store_true")
+    p.add_argument("--cache-dir", type=Path, default=None, help="prepared artifacts cache")
+    p.set_defaults(func=cmd_evaluate)
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    import time
+
+    from worker.evaluate import (
+        evaluate_strategies,
+        plot_rpe_by_strategy,
+        render_overlays,
+        write_rows_csv,
+    )
+    from worker.preparation.calibration_point import Clicks, ClicksError
+    from worker.preparation.config import PrepareConfig
+    from worker.preparation.prepare import prepare
+
+    strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
+    try:
+        clicks = [Clicks.load(c) for c in args.clicks] or None
+        configs = {
+            s: PrepareConfig(strategy=s).with_overrides(
+                registration={} if args.voxel_size is None else {"voxel_size": args.voxel_size}
+            )
+            for s in strategies
+        }
+    except (ClicksError, ValueError) as exc:
+        raise CliError(str(exc)) from exc
+    cache = args.cache_dir or Path(
+        os.environ.get("OSDAR_AR_CACHE_DIR", Path.home() / ".cache/osdar-ar/prepared")
+    )
+    tracks, prep, world = {}, {}, None
+    for s, cfg in configs.items():
+        t0 = time.perf_counter()
+        prepared = prepare(args.sequence, cfg, cache_dir=cache)
+        tracks[s] = (prepared.track, prepared.cloud.xyz)
+        world = prepared.world
+        prep[s] = {
+            "seconds": time.perf_counter() - t0,
+            "reused": bool(prepared.summary.get("reused")),
+            "preparation_seconds": prepared.summary.get("total_seconds"),
+            "chosen": prepared.strategy,
+            "warnings": prepared.summary.get("warnings", []),
+        }
+    cameras = None if args.cameras is None else [c.strip() for c in args.cameras.split(",")]
+    try:
+        metrics, rows = evaluate_strategies(
+            args.sequence, tracks, world=world, cameras=cameras, clicks=clicks,
+            near=args.near, far=args.far, click_noise_px=args.click_noise, seed=args.seed,
+            max_landmarks=args.max_landmarks, preparation=prep,
+        )  # fmt: skip
+    except (ClicksError, ValueError) as exc:
+        raise CliError(str(exc)) from exc
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"per_frame_csv": str(write_rows_csv(rows, out / "per_frame.csv"))}
+    plot = plot_rpe_by_strategy(rows, out / "rpe.png", f"RPE over frames, {metrics['sequence']}")
+    files["rpe_png"] = None if plot is None else str(plot)
+    if not args.no_overlay:
+        frames = None
+        if args.overlay_frames:
+            frames = [int(f) for f in args.overlay_frames.split(",") if f.strip()]
+        paths = render_overlays(args.sequence, rows, metrics, tracks, out / "overlays", frames)
+        files["overlays"] = [str(p) for p in paths]
+    metrics["files"] = files
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1, allow_nan=False))
+    print(f"{metrics['sequence']}: clicks from {metrics['clicks_source']}, landmarks "  # noqa: T201
+          f"{', '.join(metrics['landmarks_clicked']) or 'none'}")  # fmt: skip
+    print("camera              strategy   RPE mean±std px    jitter mean±std px   n")  # noqa: T201
+    for cam, per in metrics["rpe"].items():
+        for s, st in per.items():
+            rpe = "-" if st["rpe_mean"] is None else f"{st['rpe_mean']:.2f}±{st['rpe_std']:.2f}"
+            jit = (
+                "-"
+                if st["jitter_mean"] is None
+                else (f"{st['jitter_mean']:.2f}±{st['jitter_std']:.2f}")
+            )
+            print(f"{cam:<19} {s:<10} {rpe:<18} {jit:<20} {st['n']}")  # noqa: T201
+    for s, te in (metrics.get("true_errors") or {}).items():
+        if "translation_m_mean" in te:
+            print(  # noqa: T201
+                f"true pose error {s}: {te['translation_m_mean']:.3f} m, "
+                f"{te['rotation_deg_mean']:.3f} deg (mean)"
+            )
+    print(f"wrote {out}/metrics.json, per_frame.csv, rpe.png, overlays/")  # noqa: T201
+    return 0
+
+
+# ---------------------------------------------------------------------------- bench
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "bench",
+        help="speed against error: the paper's table, knobs / Pareto front, I/O floor",
+        description="Run the synthetic counterparts of the paper's three sequences with "
+        "every strategy and print the paper's table with its numbers beside ours, the time "
+        "per strategy, the speed-against-error table with its Pareto front and the I/O "
+        "floor ratio; --hard runs the hard-case suite instead.",
+    )
+    p.add_argument("--quick", action="store_true", help="reduced run (CI): 20 frames, 2 strategies")
+    p.add_argument("--json", type=Path, default=None, help="write the results as JSON")
+    p.add_argument("--hard", action="store_true", help="the 12 hard cases with their bounds")
+    p.add_argument("--no-floor", action="store_true", help="skip the I/O floor measurement")
+    p.add_argument(
+        "--workdir", type=Path, default=Path("/tmp/osdar_bench"),
+        help="generated sequences, per-frame CSVs, pareto.png (reused between runs)",
+    )  # fmt: skip
+    p.set_defaults(func=cmd_bench)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from worker.bench.run import run_bench
+
+    result = run_bench(
+        quick=args.quick, workdir=args.workdir, json_path=args.json, hard=args.hard,
+        floor=not args.no_floor,
+    )  # fmt: skip
+    if args.hard:
+        return 0 if all(c["ok"] for c in result["hard_cases"]) else 1
+    return 0
+
+
 # ---------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -807,6 +955,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_worker(sub)
     _add_prepare(sub)
     _add_augment(sub)
+    _add_evaluate(sub)
+    _add_bench(sub)
     _add_keys(sub)
     _add_migrate(sub)
     return parser

@@ -19,6 +19,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 #: The pepper used when none is configured; refused in production.
 DEFAULT_PEPPER = "osdar-ar-dev-pepper-not-secret"
+#: The dashboard's cookie-signing secret when none is configured; refused in production.
+DEFAULT_DASHBOARD_SECRET = "osdar-ar-dev-dashboard-secret-not-secret"
 GiB = 1024**3
 MiB = 1024**2
 
@@ -62,6 +64,8 @@ class Settings(BaseSettings):
 
     # --- secrets -----------------------------------------------------------------------
     api_key_pepper: SecretStr = SecretStr(DEFAULT_PEPPER)
+    #: Signs the dashboard's session cookies (service/dashboard/auth.py).
+    dashboard_secret: SecretStr = SecretStr(DEFAULT_DASHBOARD_SECRET)
 
     # --- upload and archive limits -----------------------------------------------------
     max_sequence_upload_bytes: int = Field(20 * GiB, gt=0)
@@ -88,6 +92,19 @@ class Settings(BaseSettings):
     worker_max_memory_per_child_kib: int = Field(8 * 1024 * 1024, gt=0)  # recycle above
     #: Frames per augmentation chunk (one chord member; chunks run on several workers).
     frames_per_chunk: int = Field(25, gt=0)
+    #: Store calls of a job retried on StoreError: attempts after the first, with
+    #: exponential backoff from ``store_retry_base_s`` capped at ``store_retry_max_s``.
+    store_retries: int = Field(6, ge=0)
+    store_retry_base_s: float = Field(0.5, gt=0)
+    store_retry_max_s: float = Field(30.0, gt=0)
+    #: The reaper (worker/jobs/reaper.py), run by every worker at start and then every
+    #: ``reaper_interval_s`` (0: never). A RUNNING job without a heartbeat (row update) for
+    #: ``reaper_stale_after_s`` (None: task_time_limit_s + visibility_margin_s) is re-queued
+    #: or FAILED; a QUEUED/RUNNING job older than ``reaper_orphan_grace_s`` that no broker
+    #: message names (Redis restarted without persistence) is re-queued.
+    reaper_interval_s: float = Field(60.0, ge=0)
+    reaper_stale_after_s: float | None = Field(None, gt=0)
+    reaper_orphan_grace_s: float = Field(120.0, gt=0)
 
     @model_validator(mode="after")
     def _derived(self) -> Settings:
@@ -125,6 +142,8 @@ class Settings(BaseSettings):
         problems = []
         if self.api_key_pepper.get_secret_value() == DEFAULT_PEPPER:
             problems.append("OSDAR_AR_API_KEY_PEPPER is the default: set a secret")
+        if self.dashboard_secret.get_secret_value() == DEFAULT_DASHBOARD_SECRET:
+            problems.append("OSDAR_AR_DASHBOARD_SECRET is the default: set a secret")
         if str(self.database_url).startswith("sqlite"):
             problems.append("DATABASE_URL is SQLite: use PostgreSQL in production")
         if "sqlite" in str(self.broker_url):
