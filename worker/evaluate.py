@@ -11,12 +11,43 @@ RPE_i = ||GT_i - p_i|| (px) between a landmark's observed pixel and the projecti
   The pipeline never reads ``ground_truth/`` while it runs; only this step does, to score.
 
 :func:`evaluate_sequence` returns JSON-ready metrics (no NaN) and per-frame series for the
-report plot (:func:`plot_rpe_jitter`).
+report plot (:func:`plot_rpe_jitter`); the job runner calls it and :func:`plot_rpe_jitter`.
+
+The paper's RPE per strategy (:func:`evaluate_strategies`, ``osdar-ar evaluate``)
+---------------------------------------------------------------------------------
+For every strategy, camera and landmark: the 3D calibration point is the point of the cloud
+registered with THAT strategy's poses whose projections are nearest to the clicks
+(:func:`~worker.preparation.calibration_point.calibration_point_from_clicks`, the paper's
+rule made robust over frames); RPE_i is the distance between the click of frame i and that
+point projected with frame i's pose at the camera's own timestamp; J_i = |RPE_{i+1} - RPE_i|
+between consecutive frame counters. Clicks come from a file (real data, formats in
+``calibration_point.py`` / the README) or, on synthetic sequences, from the ground truth:
+every landmark's true full-resolution pixel (optionally with Gaussian click noise) in the
+frames where it is ``near``-``far`` m in front of the camera (default 30-80 m). Pixels are
+at the camera's full resolution. Means and standard deviations pool every observation of
+every landmark; ``landmark_mean`` is the mean over landmarks of their RPE means.
+
+metrics.json keys (:func:`evaluate_strategies`):
+
+- ``sequence``, ``frames``, ``cameras``, ``strategies``, ``clicks_source``
+  ("file" | "ground_truth"), ``near_m``, ``far_m``, ``click_noise_px``;
+- ``rpe[camera][strategy]`` = {``rpe_mean``, ``rpe_std``, ``rpe_max``, ``jitter_mean``,
+  ``jitter_std``, ``jitter_max``, ``n``, ``n_jitter``, ``landmark_mean``,
+  ``landmarks`` {name: {same statistics, ``calibration_xyz``, ``frames``}}};
+- ``true_errors[strategy]`` (synthetic only) = {``translation_m_mean``/``max``,
+  ``rotation_deg_mean``/``max``, ``frame_to_frame_mm``, ``anchor_px`` {camera: RPE of
+  the TRUE 3D landmarks under the strategy's poses: pixel error of a true anchor point}};
+- ``preparation`` {strategy: {``seconds``, ``chosen``, ``warnings``}}; ``files``.
+
+The per-frame CSV has one row per (camera, strategy, landmark, frame):
+``camera,strategy,landmark,frame_idx,click_u,click_v,proj_u,proj_v,rpe_px,jitter_px``
+(``jitter_px`` = |RPE - RPE of the previous frame counter|, empty for a run's first frame).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -24,6 +55,8 @@ from typing import Any
 import numpy as np
 
 from worker.preparation.artifact import PreparedSequence
+
+log = logging.getLogger(__name__)
 
 
 def _finite(x: Any) -> Any:
@@ -163,6 +196,18 @@ def evaluate_sequence(
         gt, gt_series = _ground_truth(seq_folder, prepared, cameras)
         metrics["ground_truth"] = gt
         series = series or gt_series
+    clicks = clicks_of(prepared)
+    if clicks is not None or (seq_folder / "ground_truth" / "landmarks.json").is_file():
+        # the paper's RPE for the chosen strategy and the references (ins, odometry)
+        try:
+            paper, _ = evaluate_strategies(
+                seq_folder, tracks_from_prepared(prepared), world=prepared.world,
+                cameras=cameras or None, clicks=clicks,
+            )  # fmt: skip
+            metrics["paper_rpe"] = paper["rpe"]
+            metrics["landmarks_clicked"] = paper["landmarks_clicked"]
+        except (ValueError, OSError) as exc:
+            metrics["warnings"].append(f"evaluation: paper RPE not computed ({exc})")
     return _finite(metrics), series
 
 
@@ -195,3 +240,541 @@ def plot_rpe_jitter(series: dict[str, Any], out_png: str | Path, title: str = ""
     fig.savefig(out, dpi=80)
     plt.close(fig)
     return out
+
+
+# ============================================================================ paper RPE
+#: Landmarks evaluated at these distances ahead of the camera (m): where objects are placed.
+DEFAULT_NEAR_M = 30.0
+DEFAULT_FAR_M = 80.0
+#: Radius (full-resolution px) of the calibration point's search around the clicks.
+EVAL_SEARCH_RADIUS_PX = 60.0
+#: A landmark is used when it has at least this many clicked frames in a camera.
+MIN_VIEWS = 5
+#: Radius (m) of the calibration sphere drawn in the overlays.
+SPHERE_RADIUS_M = 0.25
+
+
+def _camera_times(seq: Any, camera: str) -> dict[int, float]:
+    ts = seq.timestamps(camera)
+    return {int(f): float(t) for f, t in zip(seq.frame_indices, ts, strict=True) if np.isfinite(t)}
+
+
+def full_resolution_cameras(seq: Any, cameras: list[str]) -> dict[str, Any]:
+    """The sequence's cameras at their full (sensor) resolution: synthetic sequences carry
+    them in ``ground_truth/meta.json``; otherwise the labels' intrinsics rescaled to the
+    OSDaR23 full size (the identity on real data)."""
+    from renderer.camera import CameraModel, load_cameras
+    from worker.preparation.calibration_point import camera_at_resolution, click_resolution
+
+    meta_file = Path(seq.folder) / "ground_truth" / "meta.json"
+    full = {}
+    if meta_file.is_file():
+        full = json.loads(meta_file.read_text()).get("cameras_full_resolution", {})
+    loaded = load_cameras(seq.labels.raw, seq.cameras)
+    out = {}
+    for name in cameras:
+        if name in full:
+            out[name] = CameraModel.from_json(full[name])
+        elif name in loaded:
+            out[name] = camera_at_resolution(loaded[name], *click_resolution(loaded[name]))
+    return out
+
+
+def cloud_for_track(prepared: PreparedSequence, track: Any) -> np.ndarray:
+    """The prepared cloud re-registered with another pose track (same frames).
+
+    Each point was registered with the chosen strategy's pose of its frame; it is moved
+    to ``track``'s pose of that frame: p' = T_track(f) T_chosen(f)^-1 p. Frames ``track``
+    lacks keep their points where they are.
+    """
+    from worker.poses import PoseTrack
+
+    cloud = prepared.cloud
+    if track is prepared.track:
+        return cloud.xyz
+    chosen: PoseTrack = prepared.track
+    if chosen.frame_idx is None or track.frame_idx is None:
+        raise ValueError("re-registering the cloud needs frame indices on both tracks")
+    T_c = dict(zip(chosen.frame_idx.tolist(), chosen.T, strict=True))
+    T_s = dict(zip(track.frame_idx.tolist(), track.T, strict=True))
+    out = cloud.xyz.copy()
+    for f in np.unique(cloud.frame_idx):
+        f = int(f)
+        if f not in T_c or f not in T_s:
+            continue
+        M = T_s[f] @ np.linalg.inv(T_c[f])
+        sel = cloud.frame_idx == f
+        out[sel] = cloud.xyz[sel] @ M[:3, :3].T + M[:3, 3]
+    return out
+
+
+def synthetic_clicks(
+    seq_folder: str | Path,
+    cameras: list[str],
+    *,
+    near: float = DEFAULT_NEAR_M,
+    far: float = DEFAULT_FAR_M,
+    click_noise_px: float = 0.0,
+    seed: int = 0,
+    max_landmarks: int = 8,
+    min_views: int = MIN_VIEWS,
+) -> list[Any]:
+    """Clicks from the ground truth of a synthetic sequence: one :class:`Clicks` per
+    landmark, its true full-resolution pixel in every frame where it is ``near``-``far``
+    m in front of the camera (true pose at the camera's timestamp), plus N(0, noise^2)."""
+    from worker.osdar.sequence import Sequence
+    from worker.poses import PoseTrack
+    from worker.preparation.calibration_point import Clicks
+
+    folder = Path(seq_folder)
+    gt = folder / "ground_truth"
+    seq = Sequence.open(folder)
+    dense = gt / "poses_dense.csv"
+    truth = PoseTrack.from_csv(dense if dense.is_file() else gt / "poses.csv")
+    cams = full_resolution_cameras(seq, cameras)
+    landmarks = json.loads((gt / "landmarks.json").read_text())
+    rng = np.random.default_rng(seed)
+    scored = []
+    for lm in landmarks:
+        xyz = np.asarray(lm["xyz"], dtype=np.float64)
+        uv: dict[str, dict[int, np.ndarray]] = {}
+        for name, cam in cams.items():
+            times = _camera_times(seq, name)
+            pix = lm.get("pixels", {}).get(name, {})
+            for f_txt, p in sorted(pix.items(), key=lambda kv: int(kv[0])):
+                f = int(f_txt)
+                if p is None or f not in times:
+                    continue
+                T = truth.interpolate(np.array([times[f]]), max_extrapolation_s=0.1)[0]
+                T_opt_world = np.linalg.inv(T @ cam.T_base_opt)
+                depth = float(T_opt_world[2, :3] @ xyz + T_opt_world[2, 3])
+                if near <= depth <= far:
+                    click = np.asarray(p, dtype=np.float64)
+                    if click_noise_px > 0:
+                        click = click + rng.normal(0.0, click_noise_px, 2)
+                    uv.setdefault(name, {})[f] = click
+            if len(uv.get(name, {})) < min_views:
+                uv.pop(name, None)
+        if uv:
+            res = {n: (cams[n].width, cams[n].height) for n in uv}
+            scored.append((sum(len(v) for v in uv.values()), Clicks(lm["id"], uv, res)))
+    scored.sort(key=lambda x: -x[0])
+    return [c for _, c in scored[:max_landmarks]]
+
+
+def rpe_from_clicks(
+    xyz_world: np.ndarray,
+    track: Any,
+    cameras: dict[str, Any],
+    camera_times: dict[str, dict[int, float]],
+    clicks: Any,
+    search_radius_px: float = EVAL_SEARCH_RADIUS_PX,
+) -> dict[str, dict[str, Any]]:
+    """RPE per frame of one landmark in each clicked camera (the paper's definition).
+
+    Per camera the calibration point is chosen from that camera's clicks alone. Returns
+    {camera: {"xyz", "frames", "rpe", "click", "projected", "warnings"}} (pixels at the
+    clicks' resolution; frames whose projection fails are left out).
+    """
+    from worker.preparation.calibration_point import Clicks, calibration_point_from_clicks
+    from worker.preparation.config import CalibrationConfig
+
+    cfg = CalibrationConfig(search_radius_px=search_radius_px)
+    out: dict[str, dict[str, Any]] = {}
+    for cam_name, frames in sorted(clicks.uv.items()):
+        if cam_name not in cameras:
+            continue
+        one = Clicks(clicks.landmark, {cam_name: frames}, dict(clicks.resolution))
+        cal = calibration_point_from_clicks(
+            xyz_world, track, {cam_name: cameras[cam_name]}, camera_times, one, cfg
+        )
+        obs = [o for o in cal.observations if o["residual_px"] is not None]
+        out[cam_name] = {
+            "xyz": None if cal.xyz is None else [float(v) for v in cal.xyz],
+            "frames": [int(o["frame_idx"]) for o in obs],
+            "rpe": [float(o["residual_px"]) for o in obs],
+            "click": [o["click"] for o in obs],
+            "projected": [o["projected"] for o in obs],
+            "warnings": list(cal.warnings),
+        }
+    return out
+
+
+def _jitter(frames: list[int], rpe: list[float]) -> list[float | None]:
+    """|RPE_i - RPE_{i-1}| per frame (None for the first frame of a consecutive run)."""
+    out: list[float | None] = [None] * len(frames)
+    for k in range(1, len(frames)):
+        if frames[k] == frames[k - 1] + 1:
+            out[k] = abs(rpe[k] - rpe[k - 1])
+    return out
+
+
+def _rpe_stats(rpe: list[float], jit: list[float]) -> dict[str, Any]:
+    r, j = np.asarray(rpe, dtype=np.float64), np.asarray(jit, dtype=np.float64)
+    return {
+        "rpe_mean": float(r.mean()) if len(r) else None,
+        "rpe_std": float(r.std()) if len(r) else None,
+        "rpe_max": float(r.max()) if len(r) else None,
+        "jitter_mean": float(j.mean()) if len(j) else None,
+        "jitter_std": float(j.std()) if len(j) else None,
+        "jitter_max": float(j.max()) if len(j) else None,
+        "n": len(r),
+        "n_jitter": len(j),
+    }
+
+
+def summarize_rpe(per_landmark: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Pooled statistics over landmarks ({landmark: rpe_from_clicks()[camera]})."""
+    all_r: list[float] = []
+    all_j: list[float] = []
+    lms: dict[str, Any] = {}
+    for name, s in per_landmark.items():
+        jit = [x for x in _jitter(s["frames"], s["rpe"]) if x is not None]
+        all_r += s["rpe"]
+        all_j += jit
+        lms[name] = {
+            **_rpe_stats(s["rpe"], jit),
+            "calibration_xyz": s["xyz"],
+            "frames": [min(s["frames"]), max(s["frames"])] if s["frames"] else None,
+        }
+    means = [v["rpe_mean"] for v in lms.values() if v["rpe_mean"] is not None]
+    return {
+        **_rpe_stats(all_r, all_j),
+        "landmark_mean": float(np.mean(means)) if means else None,
+        "landmarks": lms,
+    }
+
+
+def _true_errors(
+    seq: Any, track: Any, world: Any, cams: dict[str, Any], clicks: list[Any]
+) -> dict[str, Any]:
+    """True pose errors and the pixel error of the true landmarks (synthetic data)."""
+    from worker.geodesy import WorldFrame
+    from worker.landmark_error import landmark_errors
+    from worker.poses import PoseTrack, reexpress
+
+    gt_dir = Path(seq.folder) / "ground_truth"
+    truth = PoseTrack.from_csv(gt_dir / "poses.csv")
+    T_prep_gt = np.eye(4)
+    if (gt_dir / "world.json").is_file():
+        gt_world = WorldFrame.from_json(json.loads((gt_dir / "world.json").read_text()))
+        truth = reexpress(truth, gt_world, world)
+        T_prep_gt = world.T_world_other(gt_world)
+    out: dict[str, Any] = {}
+    try:
+        dt, dr = track.relative_errors(truth, max_extrapolation_s=0.05)
+        rel = np.linalg.norm(
+            np.diff(track.T[:, :3, 3] - _at(truth, track)[:, :3, 3], axis=0), axis=1
+        )
+        out.update(
+            translation_m_mean=float(dt.mean()),
+            translation_m_max=float(dt.max()),
+            rotation_deg_mean=float(dr.mean()),
+            rotation_deg_max=float(dr.max()),
+            frame_to_frame_mm=float(rel.mean() * 1e3) if len(rel) else None,
+        )
+    except ValueError as exc:
+        out["error"] = str(exc)
+    landmarks = {lm["id"]: lm for lm in json.loads((gt_dir / "landmarks.json").read_text())}
+    anchor = {}
+    for cam_name, cam in cams.items():
+        times = _camera_times(seq, cam_name)
+        use = [c for c in clicks if cam_name in c.uv and c.landmark in landmarks]
+        if not use:
+            continue
+        xyz = np.array([landmarks[c.landmark]["xyz"] for c in use], dtype=np.float64)
+        xyz = xyz @ T_prep_gt[:3, :3].T + T_prep_gt[:3, 3]
+        obs = [
+            {
+                int(f): uv
+                for f, uv in landmarks[c.landmark]["pixels"][cam_name].items()
+                if int(f) in c.uv[cam_name]
+            }
+            for c in use
+        ]
+        try:
+            errs = landmark_errors(cam, track, xyz, obs, times)
+        except ValueError:
+            continue
+        anchor[cam_name] = {k: v for k, v in errs.summary().items()}
+    out["anchor_px"] = anchor
+    return out
+
+
+def _at(truth: Any, track: Any) -> np.ndarray:
+    return truth.interpolate(track.timestamps, max_extrapolation_s=0.05)
+
+
+def evaluate_strategies(
+    seq_folder: str | Path,
+    tracks: dict[str, tuple[Any, np.ndarray]],
+    *,
+    world: Any,
+    cameras: list[str] | None = None,
+    clicks: list[Any] | None = None,
+    near: float = DEFAULT_NEAR_M,
+    far: float = DEFAULT_FAR_M,
+    click_noise_px: float = 0.0,
+    seed: int = 0,
+    max_landmarks: int = 8,
+    preparation: dict[str, Any] | None = None,
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The paper's RPE and jitter per camera and strategy (module docstring).
+
+    Parameters
+    ----------
+    seq_folder : the sequence (with ``ground_truth/`` for synthetic clicks / true errors).
+    tracks : {strategy: (T_world_base track, its registered cloud (n, 3) world)}.
+    world : the world frame the tracks are in (the preparation's).
+    cameras : cameras to evaluate (default: the clicked ones, else every camera).
+    clicks : landmarks' clicks (None: from the ground truth; then it must exist).
+    preparation : {strategy: {...}} copied into the metrics.
+
+    Returns
+    -------
+    (metrics, per-frame rows).
+    """
+    from worker.osdar.sequence import Sequence
+
+    folder = Path(seq_folder)
+    seq = Sequence.open(folder)
+    has_gt = (folder / "ground_truth" / "landmarks.json").is_file()
+    source = "file"
+    if clicks is None:
+        if not has_gt:
+            raise ValueError(f"{folder}: no clicks given and no ground_truth/ to click from")
+        source = "ground_truth"
+        cams_wanted = cameras or list(seq.cameras)
+        clicks = synthetic_clicks(
+            folder, cams_wanted, near=near, far=far, click_noise_px=click_noise_px,
+            seed=seed, max_landmarks=max_landmarks,
+        )  # fmt: skip
+    missing = sorted({c for cl in clicks for c in cl.uv} - set(seq.cameras))
+    if missing:
+        from worker.preparation.calibration_point import ClicksError
+
+        raise ClicksError(
+            f"clicks name camera(s) {', '.join(missing)} that the sequence lacks "
+            f"(it has: {', '.join(seq.cameras)})"
+        )
+    if cameras is None:
+        cameras = sorted({c for cl in clicks for c in cl.uv})
+    cams = full_resolution_cameras(seq, cameras)
+    times = {c: _camera_times(seq, c) for c in cams}
+    metrics: dict[str, Any] = {
+        "sequence": seq.name,
+        "frames": len(seq.frame_indices),
+        "cameras": list(cams),
+        "strategies": list(tracks),
+        "clicks_source": source,
+        "landmarks_clicked": [c.landmark for c in clicks],
+        "near_m": near if source == "ground_truth" else None,
+        "far_m": far if source == "ground_truth" else None,
+        "click_noise_px": click_noise_px if source == "ground_truth" else None,
+        "rpe": {},
+    }
+    rows: list[dict[str, Any]] = []
+    for strategy, (track, xyz) in tracks.items():
+        per_cam: dict[str, dict[str, Any]] = {c: {} for c in cams}
+        for cl in clicks:
+            for cam_name, s in rpe_from_clicks(xyz, track, cams, times, cl).items():
+                per_cam[cam_name][cl.landmark] = s
+                jit = _jitter(s["frames"], s["rpe"])
+                for k, f in enumerate(s["frames"]):
+                    rows.append(
+                        {
+                            "camera": cam_name,
+                            "strategy": strategy,
+                            "landmark": cl.landmark,
+                            "frame_idx": f,
+                            "click_u": s["click"][k][0],
+                            "click_v": s["click"][k][1],
+                            "proj_u": s["projected"][k][0],
+                            "proj_v": s["projected"][k][1],
+                            "rpe_px": s["rpe"][k],
+                            "jitter_px": jit[k],
+                        }
+                    )
+        for cam_name, lms in per_cam.items():
+            metrics["rpe"].setdefault(cam_name, {})[strategy] = summarize_rpe(lms)
+    if has_gt:
+        metrics["true_errors"] = {
+            s: _true_errors(seq, tr, world, cams, clicks) for s, (tr, _) in tracks.items()
+        }
+    if preparation:
+        metrics["preparation"] = preparation
+    return _finite(metrics), rows
+
+
+# ---------------------------------------------------------------------------- outputs
+ROW_FIELDS = (
+    "camera", "strategy", "landmark", "frame_idx", "click_u", "click_v", "proj_u", "proj_v",
+    "rpe_px", "jitter_px",
+)  # fmt: skip
+
+
+def write_rows_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
+    import csv
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=ROW_FIELDS)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if r.get(k) is None else r[k]) for k in ROW_FIELDS})
+    return path
+
+
+def plot_rpe_by_strategy(
+    rows: list[dict[str, Any]], out_png: str | Path, title: str = ""
+) -> Path | None:
+    """RPE over frames (mean over landmarks per frame), one line per strategy, one panel
+    per camera."""
+    if not rows:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cams = sorted({r["camera"] for r in rows})
+    fig, axes = plt.subplots(len(cams), 1, figsize=(8, 3 * len(cams)), sharex=True, squeeze=False)
+    for ax, cam in zip(axes[:, 0], cams, strict=True):
+        for strat in dict.fromkeys(r["strategy"] for r in rows):
+            sel = [r for r in rows if r["camera"] == cam and r["strategy"] == strat]
+            if not sel:
+                continue
+            frames = sorted({r["frame_idx"] for r in sel})
+            mean = [np.mean([r["rpe_px"] for r in sel if r["frame_idx"] == f]) for f in frames]
+            ax.plot(frames, mean, marker=".", ms=3, label=strat)
+        ax.set_ylabel(f"RPE (px)\n{cam}")
+        ax.set_yscale("symlog", linthresh=1.0)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    axes[-1, 0].set_xlabel("frame")
+    if title:
+        axes[0, 0].set_title(title)
+    fig.tight_layout()
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=80)
+    plt.close(fig)
+    return out
+
+
+_COLORS = [(255, 64, 64), (64, 200, 64), (64, 128, 255), (255, 200, 0), (255, 0, 255)]
+
+
+def render_overlays(
+    seq_folder: str | Path,
+    rows: list[dict[str, Any]],
+    metrics: dict[str, Any],
+    tracks: dict[str, tuple[Any, np.ndarray]],
+    out_dir: str | Path,
+    frames: list[int] | None = None,
+    landmark: str | None = None,
+    radius_m: float = SPHERE_RADIUS_M,
+) -> list[Path]:
+    """The calibration sphere drawn into camera frames: per strategy a circle of the
+    projected radius of a ``radius_m`` sphere at that strategy's calibration point, and the
+    click as a white cross. Default frames: first, middle and last clicked frame of the
+    first landmark."""
+    import cv2
+
+    from worker.osdar.images import write_png
+    from worker.osdar.sequence import Sequence
+
+    seq = Sequence.open(seq_folder)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    strategies = list(tracks)
+    for cam_name, per_strat in (metrics.get("rpe") or {}).items():
+        lm = landmark or next(
+            (n for s in per_strat.values() for n in (s.get("landmarks") or {})), None
+        )
+        if lm is None:
+            continue
+        sel = [r for r in rows if r["camera"] == cam_name and r["landmark"] == lm]
+        clicked = sorted({r["frame_idx"] for r in sel})
+        if not clicked:
+            continue
+        use = frames or sorted({clicked[0], clicked[len(clicked) // 2], clicked[-1]})
+        cam_full = full_resolution_cameras(seq, [cam_name])[cam_name]
+        times = _camera_times(seq, cam_name)
+        for f in use:
+            if f not in times:
+                continue
+            img = seq.image(f, cam_name)
+            if img.ndim == 2:
+                img = np.repeat(img[:, :, None], 3, axis=2)
+            img = np.ascontiguousarray(img[:, :, :3])
+            s = img.shape[1] / cam_full.width
+            thick = max(1, round(2 * s * 4))
+            for k, strat in enumerate(strategies):
+                xyz = ((per_strat.get(strat) or {}).get("landmarks") or {}).get(lm, {})
+                xyz = xyz.get("calibration_xyz")
+                if xyz is None:
+                    continue
+                track = tracks[strat][0]
+                T = track.interpolate(np.array([times[f]]), max_extrapolation_s=0.2)[0]
+                p = np.asarray(xyz, dtype=np.float64)[None]
+                uv, ok = cam_full.project_world(p, T)
+                if not ok[0]:
+                    continue
+                T_opt_world = np.linalg.inv(T @ cam_full.T_base_opt)
+                depth = float(T_opt_world[2, :3] @ p[0] + T_opt_world[2, 3])
+                r_px = max(2.0, cam_full.fx * radius_m / max(depth, 1e-3) * s)
+                c = (uv[0] + 0.5) * s - 0.5
+                cv2.circle(
+                    img, (round(c[0] * 16), round(c[1] * 16)), round(r_px * 16),
+                    _COLORS[k % len(_COLORS)], thick, cv2.LINE_AA, 4,
+                )  # fmt: skip
+                cv2.putText(
+                    img, strat, (round(c[0] + r_px + 3), round(c[1] + 4 * (k - 1) * thick + 4)),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.3 * max(1.0, 4 * s), _COLORS[k % len(_COLORS)],
+                    1, cv2.LINE_AA,
+                )  # fmt: skip
+            click = next((r for r in sel if r["frame_idx"] == f), None)
+            if click is not None:
+                c = (np.array([click["click_u"], click["click_v"]]) + 0.5) * s - 0.5
+                cv2.drawMarker(
+                    img, (round(c[0]), round(c[1])), (255, 255, 255), cv2.MARKER_CROSS,
+                    max(6, round(24 * s)), 1, cv2.LINE_AA,
+                )  # fmt: skip
+            path = out_dir / f"overlay_{cam_name}_{f:03d}.png"
+            write_png(path, img)
+            written.append(path)
+    return written
+
+
+def tracks_from_prepared(
+    prepared: PreparedSequence, references: bool = True
+) -> dict[str, tuple[Any, np.ndarray]]:
+    """{strategy: (track, cloud)}: the chosen strategy with its own registered cloud and,
+    with ``references``, the raw INS and odometry tracks with the same cloud re-registered
+    with their poses (:func:`cloud_for_track`)."""
+    chosen = prepared.strategy or "chosen"
+    out = {chosen: (prepared.track, prepared.cloud.xyz)}
+    if references:
+        for name, track in prepared.references.items():
+            if name not in out:
+                try:
+                    out[name] = (track, cloud_for_track(prepared, track))
+                except ValueError as exc:
+                    log.warning("reference %s not evaluated: %s", name, exc)
+    return out
+
+
+def clicks_of(prepared: PreparedSequence) -> list[Any] | None:
+    """The clicks the preparation used (from its calibration point), or None."""
+    from worker.preparation.calibration_point import Clicks
+
+    cal = prepared.calibration
+    if cal is None or cal.mode != "clicks" or not cal.observations:
+        return None
+    uv: dict[str, dict[int, np.ndarray]] = {}
+    for o in cal.observations:
+        uv.setdefault(o["camera"], {})[int(o["frame_idx"])] = np.asarray(o["click"], float)
+    return [Clicks(cal.landmark, uv, dict(cal.resolution))]

@@ -1,0 +1,193 @@
+"""Evaluation (pipeline step 8): the paper's RPE and jitter per camera and strategy.
+
+A small synthetic fire_site (20 frames): the landmarks' true pixels are the clicks. Bounds:
+with the TRUE poses and a cloud registered with them, the RPE is limited by how near a
+cloud point lies to the landmark (a few px at full resolution) and the jitter stays below
+1 px; a 2 m sideways jump in half the frames makes the RPE and jitter grow by far.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from worker.evaluate import (
+    _jitter,
+    cloud_for_track,
+    evaluate_strategies,
+    summarize_rpe,
+    synthetic_clicks,
+)
+from worker.osdar.sequence import Sequence
+from worker.poses import PoseTrack
+
+CAMS = ["rgb_center", "rgb_highres_center"]
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from worker.synth.generator import SynthConfig, generate
+
+    folder = tmp_path_factory.mktemp("ev") / "fire_ev"
+    generate(folder, SynthConfig(scene="fire_site", frames=20, scale=0.05, lidar_density=0.5))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def truth_tracks(seq: Path) -> dict:
+    """{"truth": (true poses, cloud registered with them), "jumpy": (poses with a 2 m
+    sideways jump from frame 10 on, the same cloud re-registered with them)}."""
+    from worker.geodesy import WorldFrame
+    from worker.preparation.registration import register_clouds
+
+    s = Sequence.open(seq)
+    truth = PoseTrack.from_csv(seq / "ground_truth/poses.csv")
+    cloud = register_clouds(s, truth, voxel_size=0.05, frames=s.frame_indices, max_range=90.0)
+    T = truth.T.copy()
+    T[10:, :3, 3] += T[10:, :3, :3] @ np.array([0.0, 2.0, 0.0])
+    jumpy = PoseTrack(truth.timestamps, T, truth.frame_idx)
+    world = WorldFrame.from_json(json.loads((seq / "ground_truth/world.json").read_text()))
+
+    class _Prepared:  # the two attributes cloud_for_track reads
+        pass
+
+    p = _Prepared()
+    p.track, p.cloud = truth, cloud
+    return {
+        "world": world,
+        "truth": (truth, cloud.xyz),
+        "jumpy": (jumpy, cloud_for_track(p, jumpy)),
+    }
+
+
+def test_jitter_only_between_consecutive_frames() -> None:
+    assert _jitter([3, 4, 6, 7], [1.0, 2.5, 9.0, 8.0]) == [None, 1.5, None, 1.0]
+    s = summarize_rpe({"a": {"frames": [0, 1, 2], "rpe": [1.0, 2.0, 4.0], "xyz": [0, 0, 0]}})
+    assert s["rpe_mean"] == pytest.approx(7 / 3) and s["jitter_mean"] == pytest.approx(1.5)
+    assert s["n"] == 3 and s["n_jitter"] == 2 and s["landmark_mean"] == pytest.approx(7 / 3)
+
+
+def test_synthetic_clicks_are_30_to_80_m_ahead(seq: Path) -> None:
+    clicks = synthetic_clicks(seq, CAMS, near=30.0, far=80.0)
+    assert clicks, "no landmark 30-80 m ahead"
+    lms = {lm["id"]: lm for lm in json.loads((seq / "ground_truth/landmarks.json").read_text())}
+    for c in clicks:
+        for cam, frames in c.uv.items():
+            assert len(frames) >= 5
+            for f, uv in frames.items():
+                assert np.allclose(uv, lms[c.landmark]["pixels"][cam][str(f)])
+    noisy = synthetic_clicks(seq, CAMS, click_noise_px=2.0, seed=1)
+    d = [
+        np.linalg.norm(noisy[0].uv[cam][f] - clicks[0].uv[cam][f])
+        for cam in clicks[0].uv
+        for f in clicks[0].uv[cam]
+    ]
+    assert 0.5 < np.mean(d) < 5.0
+
+
+def test_rpe_with_true_poses_is_small_and_grows_with_a_jump(seq: Path, truth_tracks) -> None:
+    tracks = {k: truth_tracks[k] for k in ("truth", "jumpy")}
+    m, rows = evaluate_strategies(seq, tracks, world=truth_tracks["world"], cameras=CAMS)
+    assert m["clicks_source"] == "ground_truth" and m["landmarks_clicked"]
+    for cam in CAMS:
+        t, j = m["rpe"][cam]["truth"], m["rpe"][cam]["jumpy"]
+        assert t["n"] > 10 and t["n_jitter"] > 5
+        assert t["rpe_mean"] < 4.0, (cam, t)  # cloud discreteness: 5 cm voxels, sparse lidar
+        assert t["jitter_mean"] < 1.0, (cam, t)
+        assert j["jitter_max"] > 10 * max(t["jitter_max"], 1.0), (cam, j)
+        for key in ("rpe_mean", "rpe_std", "jitter_mean", "jitter_std", "landmark_mean"):
+            assert np.isfinite(t[key])
+    te = m["true_errors"]["truth"]
+    assert te["translation_m_max"] < 1e-6 and te["rotation_deg_max"] < 1e-6
+    for cam in CAMS:
+        assert te["anchor_px"][cam]["rpe_mean"] < 0.05  # true poses (10 Hz, interpolated)
+    assert m["true_errors"]["jumpy"]["translation_m_max"] == pytest.approx(2.0, abs=1e-6)
+    # rows: one per (camera, strategy, landmark, frame), jitter empty at a run's start
+    assert {r["strategy"] for r in rows} == {"truth", "jumpy"}
+    first = [r for r in rows if r["jitter_px"] is None]
+    assert first and all(r["rpe_px"] >= 0 for r in rows)
+
+
+def test_cloud_for_track_is_the_registration_with_that_track(seq: Path, truth_tracks) -> None:
+    from scipy.spatial import cKDTree
+
+    from worker.preparation.registration import register_clouds
+
+    s = Sequence.open(seq)
+    jumpy, moved = truth_tracks["jumpy"]
+    assert len(moved) == len(truth_tracks["truth"][1]) and np.all(np.isfinite(moved))
+    direct = register_clouds(s, jumpy, voxel_size=0.05, frames=s.frame_indices, max_range=90.0)
+    # every moved point lies where registering with the jumpy poses puts a point
+    dist, _ = cKDTree(direct.xyz).query(moved[:: max(1, len(moved) // 2000)])
+    assert np.percentile(dist, 95) < 0.06
+
+
+def test_clicks_file_cli_writes_everything(seq: Path, tmp_path: Path, capsys) -> None:
+    """A clicks CSV of one landmark (the README's format) through ``osdar-ar evaluate``."""
+    from worker.cli import main
+
+    c = synthetic_clicks(seq, CAMS)[0]
+    clicks_csv = tmp_path / "pole.csv"
+    with clicks_csv.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["camera", "frame_idx", "u", "v"])
+        for cam, frames in c.uv.items():
+            for fr, uv in sorted(frames.items()):
+                w.writerow([cam, fr, f"{uv[0]:.3f}", f"{uv[1]:.3f}"])
+            w.writerow([cam, 19, "", ""])  # no click in that frame
+    out = tmp_path / "ev"
+    rc = main(
+        [
+            "evaluate", str(seq), "--out", str(out), "--strategies", "ins,fused",
+            "--clicks", str(clicks_csv), "--cache-dir", str(tmp_path / "cache"),
+        ]
+    )  # fmt: skip
+    assert rc == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["clicks_source"] == "file" and m["landmarks_clicked"] == ["pole"]
+    assert m["strategies"] == ["ins", "fused"]
+    for cam in c.uv:
+        for s in ("ins", "fused"):
+            st = m["rpe"][cam][s]
+            assert st["n"] == len(c.uv[cam]) and st["rpe_mean"] is not None
+            assert {"rpe_std", "jitter_mean", "jitter_std", "landmarks"} <= set(st)
+    assert m["preparation"]["fused"]["chosen"] == "fused"
+    assert "true_errors" in m
+    with (out / "per_frame.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert rows and list(rows[0]) == [
+        "camera", "strategy", "landmark", "frame_idx", "click_u", "click_v", "proj_u",
+        "proj_v", "rpe_px", "jitter_px",
+    ]  # fmt: skip
+    assert (out / "rpe.png").stat().st_size > 1000
+    overlays = m["files"]["overlays"]
+    assert overlays and all(Path(p).is_file() for p in overlays)
+    assert "RPE mean" in capsys.readouterr().out
+
+
+def test_cli_errors_exit_2(seq: Path, tmp_path: Path) -> None:
+    from worker.cli import main
+
+    bad = tmp_path / "bad.csv"
+    bad.write_text("camera,frame_idx,u,v\nrgb_nope,0,1,2\n")
+    args = ["evaluate", str(seq), "--out", str(tmp_path / "o"), "--strategies", "ins"]
+    assert main([*args, "--clicks", str(bad), "--cache-dir", str(tmp_path / "c")]) == 2
+
+
+def test_evaluate_sequence_keeps_the_job_keys_and_adds_the_paper_rpe(seq: Path, tmp_path) -> None:
+    from worker.evaluate import evaluate_sequence
+    from worker.preparation.config import PrepareConfig
+    from worker.preparation.prepare import prepare
+
+    prepared = prepare(seq, PrepareConfig(strategy="fused"), cache_dir=tmp_path / "cache")
+    m, series = evaluate_sequence(seq, prepared, CAMS)
+    assert m["strategy"] == "fused"
+    assert m["ground_truth"]["pose_error"]["ins"]["translation_m_mean"] >= 0
+    assert m["ground_truth"]["landmark_rpe"]["rgb_center"]["fused"]["rpe_px"]["n"] > 0
+    assert set(m["paper_rpe"]["rgb_highres_center"]) == {"fused", "ins", "odometry"}
+    assert series
+    json.dumps(m, allow_nan=False)
