@@ -23,7 +23,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-REDIS_URL = "redis://127.0.0.1:6379/12"
+REDIS_URL = "redis://127.0.0.1:6379/11"
 
 
 def _spec(seq_id: str) -> dict[str, Any]:
@@ -106,7 +106,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=6)
     ap.add_argument("--frames", type=int, default=10)
+    ap.add_argument("--redis-url", default=REDIS_URL, help="a Redis DB this run may flush")
     args = ap.parse_args()
+    globals()["REDIS_URL"] = args.redis_url
     from worker.synth.generator import SynthConfig, generate
 
     root = Path(tempfile.mkdtemp(prefix="osdar_throughput_"))
