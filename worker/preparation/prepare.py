@@ -5,8 +5,8 @@ The recipe (:func:`run_preparation`), one line per stage:
 1. open the sequence, check the clicks against its cameras;
 2. INS poses (world frame = ENU at the first INS record, nominal INS-to-lidar assumption);
 3. lidar odometry: ONE KISS-ICP run, memoised for every strategy that needs it;
-4. pre-registration: every ``pre_frame_step``-th cloud with the odometry (or INS) poses,
-   coarse voxels - enough to find the rails;
+4. pre-registration: every ``pre_frame_step``-th cloud with the odometry poses anchored on
+   all INS positions (or the INS poses), coarse voxels - enough to find the rails;
 5. tracks on it: the ego centreline the rail-based strategies need;
 6. the localization strategy -> T_world_base at every frame's lidar timestamp;
 7. final registration with the strategy's poses (every ``frame_step``-th cloud: at 10 Hz
@@ -56,6 +56,7 @@ from worker.preparation.calibration_point import (
 )
 from worker.preparation.config import PrepareConfig
 from worker.preparation.frame_clouds import FrameClouds
+from worker.preparation.localization.anchor import anchored_to_ins
 from worker.preparation.registration import RegisteredCloud, register_clouds
 from worker.preparation.scene_elements import find_scene_elements, reference_centreline
 
@@ -221,7 +222,13 @@ def run_preparation(
 
     with stage("pre_registration"):
         use_odo = reg.pre_poses == "odometry" and odo_health.fallback is None
-        pre_track = odo_track if use_odo else _at_frames(inp.ins_track, inp)
+        if use_odo:
+            # Anchored on every INS record, not the first: the rails found on this cloud
+            # carry its heading into the rail-based strategies (localization/anchor.py).
+            pre_track, anchor_info = anchored_to_ins(odo_track, inp.ins_track)
+            odo_health.metrics.update({f"anchor_{k}": v for k, v in anchor_info.items()})
+        else:
+            pre_track = _at_frames(inp.ins_track, inp)
         pre_cloud = register_clouds(
             seq,
             pre_track,
