@@ -6,7 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test test-full lint bench clean
+.PHONY: setup demo test test-full lint bench clean reliability
 
 setup: $(STAMP)
 
@@ -26,6 +26,16 @@ test: setup
 
 test-full: setup
 	OSDAR_FULL=1 $(PY) -m pytest -q
+
+# Every scenario of ../shared/design/RELIABILITY.md in its full form, printing its figures
+# (needs Redis and PostgreSQL on loopback; redis_restart restarts the local Redis).
+RELIABILITY := idempotency_burst authz_matrix limits hostile_uploads poison kill_workers \
+	store_outage redis_restart schemathesis_run load_poll
+
+reliability: setup
+	@fail=0; for s in $(RELIABILITY); do \
+		timeout 1800 $(PY) -m scripts.reliability.$$s || fail=1; \
+	done; exit $$fail
 
 lint: setup
 	$(PY) -m ruff check .

@@ -124,6 +124,12 @@ def _check_name(name: str, limits: ArchiveLimits) -> PurePosixPath:
     return PurePosixPath(*parts)
 
 
+def _is_root_dir(m: tarfile.TarInfo) -> bool:
+    """The archive's own root (``.`` or ``./``, as ``tar -C dir .`` and the workers' chunk
+    archives write it): a directory that is the destination itself, skipped."""
+    return m.isdir() and all(p in ("", ".") for p in m.name.split("/"))
+
+
 def _check_nested(rel: PurePosixPath) -> None:
     if rel.name.lower().endswith(NESTED_SUFFIXES):
         raise UnsafeArchive(f"member {str(rel)!r}: archives inside the archive are refused")
@@ -180,6 +186,8 @@ def _extract_tar(archive: Path, dest: Path, limits: ArchiveLimits) -> ExtractRes
     with tarfile.open(archive, "r:*") as tf:
         for m in tf:  # lazily: a 10^6-member archive stops at the cap
             budget.member(m.name)
+            if _is_root_dir(m):
+                continue
             rel = _check_tar_member(m, limits)
             if m.isfile():
                 if rel in seen:
@@ -190,6 +198,8 @@ def _extract_tar(archive: Path, dest: Path, limits: ArchiveLimits) -> ExtractRes
     # Pass 2 extracts with filter="data" (PEP 706) and the same checks again.
     with tarfile.open(archive, "r:*") as tf:
         for m in tf:
+            if _is_root_dir(m):
+                continue
             _check_tar_member(m, limits)
             try:
                 tf.extract(m, dest, filter="data")

@@ -14,7 +14,10 @@ it so, and the job code (``runner.py``, ``state.py``) makes the effects exactly 
   delivered again while it still runs;
 - ``worker_cancel_long_running_tasks_on_connection_loss``: a task whose message can no
   longer be acknowledged (broker connection lost) is cancelled: it will be redelivered;
-- ``worker_max_memory_per_child``: prefork children are recycled above that resident size.
+- ``worker_max_memory_per_child``: prefork children are recycled above that resident size;
+- the reaper (``reaper.py``) started by every worker when ready: jobs left RUNNING by a
+  task stopped at the hard time limit, or whose messages a broker restart lost, are
+  re-queued (or FAILED once delivered ``max_deliveries`` times).
 
 Results: job state lives in our ``jobs`` table; Celery's result backend is used only by
 the chord over frame chunks (its header must store results), so results are ignored by
@@ -27,6 +30,7 @@ from __future__ import annotations
 from typing import Any
 
 from celery import Celery
+from celery.signals import worker_ready, worker_shutdown
 from sqlalchemy.engine import make_url
 
 from worker.jobs.settings import Settings, get_settings
@@ -55,7 +59,14 @@ def result_backend_url(settings: Settings) -> str:
 def celery_config(settings: Settings) -> dict[str, Any]:
     """Celery settings for ``settings`` (module docstring)."""
     vt = int(settings.visibility_timeout_s)
-    broker_options: dict[str, Any] = {"visibility_timeout": vt}
+    # kombu's Redis transport looks for expired unacked messages every interval x throttle
+    # seconds (default 10 x 10): scan every vt/10 (1..60 s), so that a message of a killed
+    # worker comes back soon after its visibility timeout, not up to 100 s later.
+    broker_options: dict[str, Any] = {
+        "visibility_timeout": vt,
+        "unacked_restore_interval": max(1, min(60, vt // 10)),
+        "unacked_restore_throttle": 1,
+    }
     if str(settings.broker_url).startswith("sqla+"):
         # kombu's SQLAlchemy transport hands its transport options to create_engine() and
         # has no visibility timeout (a delivered message stays invisible until acked or
@@ -98,6 +109,22 @@ def make_celery(settings: Settings | None = None, *, main: str = "osdar_ar") -> 
     app = Celery(main, include=["worker.jobs.tasks"], set_as_current=False)
     app.conf.update(celery_config(settings))
     return app
+
+
+@worker_ready.connect
+def _start_reaper(sender: Any = None, **_: Any) -> None:
+    """Every worker sweeps for lost jobs at start and then periodically (reaper.py)."""
+    from worker.jobs.reaper import start_reaper
+
+    app = getattr(sender, "app", None) or celery_app
+    start_reaper(get_settings(), app)
+
+
+@worker_shutdown.connect
+def _stop_reaper(**_: Any) -> None:
+    from worker.jobs.reaper import stop_reaper
+
+    stop_reaper()
 
 
 #: The process's app (``celery -A worker.jobs.celery_app worker``; the API's sender).

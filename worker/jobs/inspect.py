@@ -37,6 +37,13 @@ def inspect_sequence(folder: str | Path) -> dict[str, Any]:
             frame_indices = [int(i) for i in Sequence.open(folder).frame_indices]
         except (SequenceError, OSError, ValueError, KeyError) as exc:
             raise InspectionError(f"not a valid OSDaR23 sequence: {exc}") from exc
+        except Exception as exc:  # the reader on hostile input: wrong JSON types, nesting
+            # Found by scripts/reliability/hostile_uploads.py: labels whose "frames" is a
+            # list (AttributeError) or 100k nested arrays (RecursionError) were a 500.
+            name = type(exc).__name__
+            raise InspectionError(
+                f"not a valid OSDaR23 sequence: unreadable ({name}: {str(exc)[:300]})"
+            ) from exc
     summary["frame_indices"] = frame_indices
     summary["warnings"] = sorted({str(w.message) for w in caught})[:50]
     return json.loads(json.dumps(summary, default=str))  # plain JSON types only

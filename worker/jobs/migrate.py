@@ -2,10 +2,25 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
 MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
+
+
+class _CurrentStdout:
+    """A text stream that writes to whatever ``sys.stdout`` is when it is written to."""
+
+    @property
+    def encoding(self) -> str:
+        return getattr(sys.stdout, "encoding", None) or "utf-8"
+
+    def write(self, text: str) -> int:
+        return sys.stdout.write(text)
+
+    def flush(self) -> None:
+        sys.stdout.flush()
 
 
 def alembic_config(*, database_url: str | None = None, connection: Any = None) -> Any:
@@ -14,7 +29,10 @@ def alembic_config(*, database_url: str | None = None, connection: Any = None) -
 
     if not (MIGRATIONS_DIR / "env.py").is_file():
         raise FileNotFoundError(f"migrations not found at {MIGRATIONS_DIR}")
-    cfg = Config()
+    # Config's ``stdout`` defaults to the sys.stdout of the moment alembic.config was first
+    # imported (a default argument): under pytest that can be a capture stream closed since,
+    # and ``command.check`` then writes to a closed file. Resolve sys.stdout at write time.
+    cfg = Config(stdout=_CurrentStdout())  # type: ignore[arg-type]
     cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
     cfg.set_main_option("path_separator", "os")
     if database_url is not None:

@@ -35,6 +35,7 @@ import pickle
 import shutil
 import tarfile
 import time
+import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -77,9 +78,25 @@ class JobRun:
 
     @property
     def store(self) -> ObjectStore:
+        """The object store, every call retried with backoff (worker/jobs/retry.py)."""
         if self._store is None:
-            self._store = store_from_url(str(self.settings.store_url), self.settings)
+            from worker.jobs.retry import RetryingStore
+
+            s = self.settings
+            self._store = RetryingStore(
+                store_from_url(str(s.store_url), s),
+                retries=s.store_retries,
+                base=s.store_retry_base_s,
+                cap=s.store_retry_max_s,
+                on_retry=self._store_retry,
+            )
         return self._store
+
+    def _store_retry(self, op: str, key: str, n: int, delay: float, exc: BaseException) -> None:
+        """Each store retry is a job event (the figures of scripts/reliability/)."""
+        data = {"op": op, "key": key, "retry": n, "delay_s": round(delay, 3)}
+        state.record_event(self.job_id, "store_retry", self.attempt, str(exc)[:500], data,
+                           settings=self.settings)  # fmt: skip
 
     @property
     def workdir(self) -> Path:
@@ -397,14 +414,17 @@ def _plan(run: JobRun, mod: Any) -> Any:
     key = f"{run.prefix}plan.pkl"
     if not local.is_file():
         local.parent.mkdir(parents=True, exist_ok=True)
+        # Chunk tasks of one job run concurrently on one machine: every temporary file is
+        # private to its process, and the shared file appears only by an atomic rename.
+        tmp = local.with_name(f"plan.{os.getpid()}.{uuid.uuid4().hex}.part")
         if run.store.exists(key):
-            run.store.get_file(key, local)
+            run.store.get_file(key, tmp)
+            tmp.replace(local)
         else:
             prepared = _prepare(run)
             plan = mod.plan_augmentation(_local_sequence(run), _augment_spec(run, mod), prepared)
             if prepared.calibration is not None:
                 plan.info["calibration"] = prepared.calibration.summary()
-            tmp = local.with_suffix(".part")
             tmp.write_bytes(pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL))
             run.store.put_file(key, tmp)
             tmp.replace(local)

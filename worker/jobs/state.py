@@ -58,6 +58,13 @@ def _event(session: Any, job_id: str, kind: str, attempt: int, message: str | No
     session.add(JobEvent(job_id=job_id, kind=kind, attempt=attempt, message=message, data=data))
 
 
+def record_event(job_id: str, kind: str, attempt: int, message: str | None = None,
+                 data: dict[str, Any] | None = None, *, settings: Settings) -> None:  # fmt: skip
+    """Append one event to the job's log (store retries, reaper actions)."""
+    with session_scope(settings) as s:
+        _event(s, job_id, kind, attempt, message=message, data=data)
+
+
 def mark_running(job_id: str, *, settings: Settings, max_deliveries: int | None = None) -> int:
     """Count this delivery of ``job_id`` and start a new attempt; returns its number.
 
@@ -328,6 +335,7 @@ __all__ = [
     "mark_running",
     "merge_metrics",
     "publish_result",
+    "record_event",
     "record_timing",
     "set_progress",
     "set_stage",

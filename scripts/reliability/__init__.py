@@ -1,0 +1,1 @@
+"""Reliability and security scenarios (RELIABILITY.md), one module each; see common.py."""

@@ -1,0 +1,471 @@
+"""The harness of the reliability scenarios: real servers, real workers, figures.
+
+Every scenario (one script each, ``python -m scripts.reliability.<name> [--quick]``)
+runs against the servers of this machine on loopback: PostgreSQL (a fresh schema in the
+``test`` database, dropped afterwards), Redis (database 12, flushed), prefork
+``celery worker`` subprocesses, and the API under uvicorn in a thread. Each returns a dict
+of figures (printed as a table and one JSON line) that ``tests/test_reliability.py``
+asserts on in the reduced (``quick``) form.
+"""
+
+from __future__ import annotations
+
+import argparse
+import atexit
+import contextlib
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+REDIS_URL = os.environ.get("OSDAR_AR_RELIABILITY_REDIS_URL", "redis://127.0.0.1:6379/12")
+PG_CANDIDATES = (
+    os.environ.get("OSDAR_AR_TEST_PG_URL", ""),
+    "postgresql+psycopg://postgres@127.0.0.1:5432/test",
+    "postgresql+psycopg://root@127.0.0.1:5432/test",
+)
+REDIS_START = [
+    "redis-server",
+    "--daemonize",
+    "yes",
+    "--bind",
+    "127.0.0.1",
+    "-::1",
+    "--port",
+    "6379",
+    "--save",
+    "",
+    "--appendonly",
+    "no",
+    "--dir",
+    "/var/lib/redis",
+    "--logfile",
+    "/var/log/redis/ci.log",
+]
+TERMINAL = ("SUCCEEDED", "FAILED", "CANCELLED")
+
+
+class Unavailable(RuntimeError):
+    """A server the scenario needs is not reachable (tests skip, scripts exit 2)."""
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)  # noqa: T201
+
+
+# ---------------------------------------------------------------------------- servers
+def pg_admin_url() -> Any:
+    from sqlalchemy import create_engine, text
+    from sqlalchemy.engine import make_url
+
+    errors = []
+    for raw in filter(None, PG_CANDIDATES):
+        url = make_url(raw)
+        engine = create_engine(url, connect_args={"connect_timeout": 3})
+        try:
+            with engine.connect() as conn:
+                conn.execute(text("SELECT 1"))
+            return url
+        except Exception as exc:
+            errors.append(str(exc).splitlines()[0])
+        finally:
+            engine.dispose()
+    raise Unavailable("PostgreSQL not reachable: " + "; ".join(errors))
+
+
+@contextlib.contextmanager
+def pg_database(prefix: str = "osdar_rel") -> Iterator[str]:
+    """A fresh, migrated schema in the test database (its URL); dropped at the end."""
+    from sqlalchemy import create_engine, text
+
+    from worker.jobs.migrate import upgrade
+
+    admin = pg_admin_url()
+    schema = f"{prefix}_{uuid.uuid4().hex[:10]}"
+    engine = create_engine(admin)
+    with engine.begin() as conn:
+        conn.execute(text(f'CREATE SCHEMA "{schema}"'))
+    url = admin.update_query_dict({"options": f"-csearch_path={schema}"})
+    rendered = url.render_as_string(hide_password=False)
+    try:
+        upgrade(database_url=rendered)
+        yield rendered
+    finally:
+        from worker.jobs.db import _engine_for
+
+        _engine_for.cache_clear()
+        with engine.begin() as conn:
+            conn.execute(text(f'DROP SCHEMA IF EXISTS "{schema}" CASCADE'))
+        engine.dispose()
+
+
+def redis_client(url: str = REDIS_URL) -> Any:
+    import redis
+
+    return redis.Redis.from_url(url, socket_connect_timeout=2, socket_timeout=5)
+
+
+def redis_up(url: str = REDIS_URL) -> bool:
+    try:
+        return bool(redis_client(url).ping())
+    except Exception:
+        return False
+
+
+@contextlib.contextmanager
+def redis_db(url: str = REDIS_URL) -> Iterator[str]:
+    if not redis_up(url):
+        raise Unavailable(f"Redis not reachable at {url}")
+    redis_client(url).flushdb()
+    try:
+        yield url
+    finally:
+        with contextlib.suppress(Exception):
+            redis_client(url).flushdb()
+
+
+def redis_stop() -> None:
+    subprocess.run(
+        ["redis-cli", "-p", "6379", "shutdown", "nosave"], capture_output=True, timeout=20
+    )
+    wait_for(lambda: not redis_up(), 20, "Redis to stop")
+
+
+def redis_start() -> None:
+    if not redis_up():
+        subprocess.run(REDIS_START, capture_output=True, timeout=20, check=False)
+    wait_for(redis_up, 20, "Redis to start")
+
+
+# ---------------------------------------------------------------------------- helpers
+def wait_for(predicate: Callable[[], Any], timeout_s: float, what: str, every: float = 0.2) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(every)
+    raise TimeoutError(f"timed out after {timeout_s:.0f}s waiting for {what}")
+
+
+def synth_sequence(folder: Path, frames: int = 4) -> Path:
+    """A small synthetic OSDaR23 sequence (made once per folder)."""
+    from worker.synth.generator import SynthConfig, generate
+
+    if not (folder / "ground_truth" / "meta.json").is_file():
+        generate(
+            folder, SynthConfig(scene="fire_site", frames=frames, scale=0.05, lidar_density=0.05)
+        )
+    return folder
+
+
+def reliability_settings(data_dir: Path, **overrides: Any) -> Any:
+    """Settings of the scenarios: environment "test", short limits, no API throttling."""
+    from worker.jobs.embedded import embedded_settings
+
+    values: dict[str, Any] = {
+        "environment": "test",
+        "frames_per_chunk": 2,
+        "rate_limit_per_s": 100_000,
+        "rate_limit_burst": 1_000_000,
+        "max_concurrent_jobs_per_key": 100_000,
+        # short limits, so that lost messages come back within the scenario
+        "task_time_limit_s": 60,
+        "task_soft_time_limit_s": 50,
+        "visibility_margin_s": 5,
+        "visibility_timeout_s": 65,
+        "reaper_interval_s": 2,
+        "reaper_orphan_grace_s": 5,
+        "store_retry_base_s": 0.5,
+        "store_retry_max_s": 8,
+        "store_retries": 6,
+    }
+    values.update(overrides)
+    return embedded_settings(data_dir, **values)
+
+
+def new_api_key(settings: Any, name: str = "rel") -> str:
+    from worker.jobs.db import session_scope
+    from worker.jobs.keys import create_api_key
+
+    with session_scope(settings) as s:
+        _, secret = create_api_key(
+            session=s, name=name, pepper=settings.api_key_pepper.get_secret_value()
+        )
+    return secret
+
+
+def job_spec(sequence_id: str, **overrides: Any) -> dict[str, Any]:
+    spec: dict[str, Any] = {
+        "sequence_id": sequence_id,
+        "cameras": ["rgb_center", "rgb_highres_center"],
+        "lidar": True,
+        "object": {"builtin": "person", "scale": 1.0},
+        "placement": {"mode": "track", "s": 5.0, "offset": 0.0, "yaw_deg": 90.0},
+        "strategy": "ins",
+    }
+    spec.update(overrides)
+    return spec
+
+
+def job_rows(settings: Any, ids: list[str]) -> dict[str, Any]:
+    from sqlalchemy import select
+
+    from worker.jobs.db import session_scope
+    from worker.jobs.models import Job
+
+    with session_scope(settings) as s:
+        return {j.id: j for j in s.scalars(select(Job).where(Job.id.in_(ids)))}
+
+
+def job_events(settings: Any, job_id: str) -> list[Any]:
+    from sqlalchemy import select
+
+    from worker.jobs.db import session_scope
+    from worker.jobs.models import JobEvent
+
+    with session_scope(settings) as s:
+        return list(
+            s.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))
+        )
+
+
+def wait_terminal(settings: Any, ids: list[str], timeout_s: float) -> dict[str, Any]:
+    """Rows of ``ids`` once all are terminal, or at the deadline (some still active)."""
+    deadline = time.monotonic() + timeout_s
+    rows = job_rows(settings, ids)
+    while time.monotonic() < deadline:
+        rows = job_rows(settings, ids)
+        if all(r.state.value in TERMINAL for r in rows.values()):
+            break
+        time.sleep(0.5)
+    return rows
+
+
+def archive_keys(store: Any, job_id: str) -> list[str]:
+    return [k for k in store.list(f"jobs/{job_id}/") if k.endswith("archive.tar.gz")]
+
+
+def percentile(values: list[float], q: float) -> float:
+    if not values:
+        return float("nan")
+    v = sorted(values)
+    i = min(len(v) - 1, max(0, round(q / 100 * (len(v) - 1))))
+    return v[i]
+
+
+# ---------------------------------------------------------------------------- processes
+_STARTED: list[subprocess.Popen[bytes]] = []
+
+
+@atexit.register
+def _kill_leftovers() -> None:
+    """Workers run in their own session: never leave one consuming after we exit."""
+    for proc in _STARTED:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
+@dataclass
+class Workers:
+    """Prefork ``celery worker`` subprocesses for ``settings`` (restartable, killable)."""
+
+    settings: Any
+    log_file: Path
+    concurrency: int = 1
+    procs: list[subprocess.Popen[bytes]] = field(default_factory=list)
+    deaths_seen: int = 0
+
+    def start(self) -> subprocess.Popen[bytes]:
+        from worker.jobs.embedded import start_worker
+
+        proc = start_worker(
+            self.settings, pool="prefork", concurrency=self.concurrency, log_file=self.log_file
+        )
+        self.procs.append(proc)
+        _STARTED.append(proc)
+        wait_for(lambda: self.children(proc) or proc.poll() is not None, 60, "worker children")
+        if proc.poll() is not None:
+            raise RuntimeError(f"worker exited at start, see {self.log_file}")
+        return proc
+
+    @staticmethod
+    def children(proc: subprocess.Popen[bytes]) -> list[int]:
+        import psutil
+
+        try:
+            return [c.pid for c in psutil.Process(proc.pid).children()]
+        except psutil.NoSuchProcess:
+            return []
+
+    def alive(self) -> list[subprocess.Popen[bytes]]:
+        return [p for p in self.procs if p.poll() is None]
+
+    def kill_child(self, rng: Any) -> int | None:
+        """SIGKILL one pool process of a live worker (its parent forks another)."""
+        for proc in self.alive():
+            kids = self.children(proc)
+            if kids:
+                pid = rng.choice(kids)
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+                return pid
+        return None
+
+    def kill_worker(self, proc: subprocess.Popen[bytes] | None = None) -> int | None:
+        """SIGKILL a whole worker (parent and children: its process group), like an OOM kill
+        of its container; a new worker is started in its place."""
+        proc = proc or (self.alive() or [None])[0]
+        if proc is None:
+            return None
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        return proc.pid
+
+    def stop(self) -> None:
+        from worker.jobs.embedded import stop_worker
+
+        for proc in self.procs:
+            stop_worker(proc, timeout_s=20)
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(proc.pid, signal.SIGKILL)  # stray children of a killed parent
+
+    def log_count(self, pattern: str) -> int:
+        if not self.log_file.is_file():
+            return 0
+        return len(re.findall(pattern, self.log_file.read_text(errors="replace")))
+
+    def deaths(self) -> int:
+        """Pool processes that died (the parent logs each once) plus workers that exited."""
+        lost = self.log_count(r"Process 'ForkPoolWorker-\d+' pid:\d+ exited with")
+        return lost + sum(1 for p in self.procs if p.poll() not in (None, 0, -15))
+
+    def __enter__(self) -> Workers:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+class ApiServer:
+    """The API under uvicorn in a thread of this process, on a free loopback port."""
+
+    def __init__(self, settings: Any, celery_app: Any = None, **uvicorn_kw: Any) -> None:
+        from worker.jobs.embedded import free_port
+
+        self.settings = settings
+        self.celery_app = celery_app
+        self.port = free_port()
+        self.uvicorn_kw = uvicorn_kw
+        self.app: Any = None
+        self._server: Any = None
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def __enter__(self) -> ApiServer:
+        import uvicorn
+
+        from service.app import create_app
+        from worker.jobs.celery_app import make_celery
+
+        celery = self.celery_app if self.celery_app is not None else make_celery(self.settings)
+        self.app = create_app(self.settings, celery_app=celery)
+        config = uvicorn.Config(
+            self.app,
+            host="127.0.0.1",
+            port=self.port,
+            log_level="error",
+            lifespan="on",
+            **self.uvicorn_kw,
+        )
+        self._server = uvicorn.Server(config)
+        self._thread = threading.Thread(target=self._server.run, name="api", daemon=True)
+        self._thread.start()
+        wait_for(lambda: self._server.started, 30, "the API to start", every=0.05)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._server.should_exit = True
+        if self._thread is not None:
+            self._thread.join(15)
+        self.app.state.engine.dispose()
+
+    def client(self, secret: str | None = None, **kw: Any) -> Any:
+        import httpx
+
+        headers = {"Authorization": f"Bearer {secret}"} if secret else {}
+        return httpx.Client(base_url=self.url, headers=headers, timeout=kw.pop("timeout", 60), **kw)
+
+
+# ---------------------------------------------------------------------------- CLI
+def parser(doc: str | None) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=(doc or "").splitlines()[0] if doc else None)
+    p.add_argument("--quick", action="store_true", help="the reduced form CI runs")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workdir", type=Path, default=None, help="scratch (default: a temp dir)")
+    return p
+
+
+@contextlib.contextmanager
+def workdir(path: Path | None, name: str) -> Iterator[Path]:
+    import shutil
+    import tempfile
+
+    if path is not None:
+        path.mkdir(parents=True, exist_ok=True)
+        yield path
+        return
+    tmp = Path(tempfile.mkdtemp(prefix=f"osdar-rel-{name}-"))
+    try:
+        yield tmp
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def report(name: str, figures: dict[str, Any]) -> None:
+    """The figures as a table and one JSON line (``FIGURES {...}``) on stdout."""
+    print(f"== {name} ==")  # noqa: T201
+    width = max(len(k) for k in figures) if figures else 0
+    for k, v in figures.items():
+        if isinstance(v, float):
+            v = f"{v:.3f}"
+        elif isinstance(v, list | dict):
+            v = json.dumps(v, default=str)
+            v = v if len(v) < 300 else v[:297] + "..."
+        print(f"  {k:<{width}}  {v}")  # noqa: T201
+    print("FIGURES " + json.dumps({"scenario": name, **figures}, default=str), flush=True)  # noqa: T201
+
+
+def main(
+    name: str,
+    run: Callable[..., dict[str, Any]],
+    doc: str | None,
+    ok: Callable[[dict[str, Any]], bool],
+) -> int:
+    """Parse --quick/--seed/--workdir, run, print the figures; exit 1 if not ``ok``."""
+    args = parser(doc).parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # run atexit (kill workers)
+    try:
+        with workdir(args.workdir, name) as wd:
+            figures = run(wd, quick=args.quick, seed=args.seed)
+    except Unavailable as exc:
+        print(f"{name}: skipped: {exc}", file=sys.stderr)  # noqa: T201
+        return 2
+    report(name, figures)
+    good = ok(figures)
+    print(f"{name}: {'PASS' if good else 'FAIL'}")  # noqa: T201
+    return 0 if good else 1

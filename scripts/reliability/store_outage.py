@@ -1,0 +1,222 @@
+"""The object store unreachable for a while during publish: 0 lost jobs, no partial archive.
+
+The store is S3 on moto's server (loopback, in this process); workers are prefork on
+Redis + PostgreSQL. For each job, the S3 server is stopped when the job reaches its
+``package`` or ``publish`` stage and started again ``outage`` seconds later. The
+worker's store calls retry with exponential backoff (worker/jobs/retry.py; every retry
+is a ``store_retry`` job event). Meanwhile a watcher reads the API and, whenever S3 is
+up, every archive object in the bucket, and checks each is a complete tar.gz.
+Figures: jobs lost, retries and their delays, archives per job, partial archives seen.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import tarfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from scripts.reliability import common as c
+
+NAME = "store_outage"
+BUCKET = "osdar-rel"
+
+
+class Moto:
+    """moto's S3 server on a fixed loopback port that can be stopped and started again
+    (its state lives in this process, so objects survive the outage)."""
+
+    def __init__(self) -> None:
+        from worker.jobs.embedded import free_port
+
+        self.port = free_port()
+        self.server: Any = None
+        self.up = threading.Event()
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def start(self) -> None:
+        from moto.server import ThreadedMotoServer
+
+        logging.getLogger("werkzeug").setLevel(logging.ERROR)  # one line per request
+        deadline = time.monotonic() + 20
+        while True:
+            try:
+                self.server = ThreadedMotoServer(
+                    ip_address="127.0.0.1", port=self.port, verbose=False
+                )
+                self.server.start()
+                break
+            except OSError:  # the port still closing
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+        self.up.set()
+
+    def stop(self) -> None:
+        self.up.clear()
+        self.server.stop()
+
+
+def _complete(store: Any, key: str) -> bool:
+    data = b"".join(store.open_read(key))
+    try:
+        with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
+            for m in tar:
+                if m.isfile():
+                    tar.extractfile(m).read()
+        return True
+    except (tarfile.TarError, EOFError, OSError):
+        return False
+
+
+def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
+    from worker.jobs.store import S3Store, store_from_url
+
+    n_jobs, outage = (2, 8.0) if quick else (5, 20.0)
+    seq = c.synth_sequence(workdir / "seq" / "fire_site_rel")
+    moto = Moto()
+    moto.start()
+    try:
+        with c.pg_database() as db, c.redis_db() as broker:
+            settings = c.reliability_settings(
+                workdir / "var",
+                database_url=db,
+                broker_url=broker,
+                store_url=f"s3://{BUCKET}/rel",
+                s3_endpoint_url=moto.url,
+                aws_access_key_id="testing",
+                aws_secret_access_key="testing",
+                store_retries=8,
+                store_retry_base_s=0.5,
+                store_retry_max_s=8,
+            )
+            store = store_from_url(str(settings.store_url), settings)
+            assert isinstance(store, S3Store)
+            store.create_bucket()
+            secret = c.new_api_key(settings)
+            seen: dict[str, int] = {
+                "checked": 0,
+                "partial": 0,
+                "api_archive_early": 0,
+                "api_5xx": 0,
+                "api_transport_errors": 0,
+            }
+            stop = threading.Event()
+            watched: list[str] = []
+
+            def watch(http: Any) -> None:
+                import httpx
+
+                done: set[str] = set()
+                while not stop.is_set():
+                    for jid in list(watched):
+                        try:
+                            r = http.get(f"/v1/jobs/{jid}")
+                            a = http.get(f"/v1/jobs/{jid}/archive", headers={"Range": "bytes=0-1"})
+                        except httpx.TransportError:  # a keep-alive connection closed by the server
+                            seen["api_transport_errors"] += 1
+                            continue
+                        seen["api_5xx"] += r.status_code >= 500
+                        state = r.json().get("state") if r.status_code == 200 else None
+                        seen["api_5xx"] += a.status_code >= 500 and moto.up.is_set()
+                        if a.status_code in (200, 206) and state != "SUCCEEDED":
+                            seen["api_archive_early"] += 1
+                    if moto.up.is_set():
+                        with contextlib.suppress(Exception):
+                            for key in store.list("jobs/"):
+                                if key.endswith("archive.tar.gz") and key not in done:
+                                    seen["checked"] += 1
+                                    if _complete(store, key):
+                                        done.add(key)
+                                    else:
+                                        seen["partial"] += 1
+                    stop.wait(0.3)
+
+            workers = c.Workers(settings, workdir / "worker.log", concurrency=1)
+            records = []
+            with (
+                c.ApiServer(settings) as api,
+                api.client(secret) as http,
+                api.client(secret) as http2,
+                workers,
+            ):
+                watcher = threading.Thread(target=watch, args=(http2,), daemon=True)
+                watcher.start()
+                sid = http.post("/v1/sequences", json={"path": str(seq)}).json()["id"]
+                for _ in range(n_jobs):
+                    jid = http.post("/v1/jobs", json=c.job_spec(sid)).json()["id"]
+                    watched.append(jid)
+
+                    def at_publish(jid: str = jid) -> bool:
+                        row = c.job_rows(settings, [jid])[jid]
+                        return row.stage in ("package", "publish") or row.state.value in c.TERMINAL
+
+                    c.wait_for(at_publish, 180, "the package stage", every=0.05)
+                    stage = c.job_rows(settings, [jid])[jid].stage
+                    moto.stop()
+                    t_down = time.monotonic()
+                    time.sleep(outage)
+                    moto.start()
+                    row = c.wait_terminal(settings, [jid], 240)[jid]
+                    retries = [e for e in c.job_events(settings, jid) if e.kind == "store_retry"]
+                    records.append(
+                        {
+                            "job": jid[:8],
+                            "stage_at_outage": stage,
+                            "state": row.state.value,
+                            "error": row.error,
+                            "retries": len(retries),
+                            "delays_s": [e.data.get("delay_s") for e in retries],
+                            "ops": sorted({e.data.get("op") for e in retries}),
+                            "done_after_outage_s": round(time.monotonic() - t_down - outage, 1),
+                            "archives": c.archive_keys(store, jid),
+                            "result_key": row.result_key,
+                        }
+                    )
+                    c.log(f"job {jid[:8]}: {row.state.value}, {len(retries)} retries")
+                time.sleep(1.0)
+                stop.set()
+                watcher.join(10)
+    finally:
+        with contextlib.suppress(Exception):
+            moto.stop()
+    lost = [r for r in records if r["state"] != "SUCCEEDED"]
+    return {
+        "jobs": n_jobs,
+        "outage_s": outage,
+        "jobs_lost": len(lost),
+        "store_retries_total": sum(r["retries"] for r in records),
+        "jobs_that_retried": sum(1 for r in records if r["retries"]),
+        "max_backoff_delay_s": max((max(r["delays_s"] or [0]) for r in records), default=0),
+        "jobs_with_exactly_one_archive": sum(
+            1 for r in records if r["result_key"] and r["archives"] == [r["result_key"]]
+        ),
+        "archive_objects_checked": seen["checked"],
+        "partial_archives_visible": seen["partial"],
+        "api_archive_before_success": seen["api_archive_early"],
+        "api_5xx": seen["api_5xx"],
+        "api_transport_errors_of_the_watcher": seen["api_transport_errors"],
+        "records": records,
+    }
+
+
+def ok(f: dict[str, Any]) -> bool:
+    return (
+        f["jobs_lost"] == 0
+        and f["partial_archives_visible"] == 0
+        and f["jobs_with_exactly_one_archive"] == f["jobs"]
+        and f["jobs_that_retried"] >= 1
+        and f["api_archive_before_success"] == 0
+        and f["api_5xx"] == 0
+    )
+
+
+if __name__ == "__main__":
+    raise SystemExit(c.main(NAME, run, __doc__, ok))
