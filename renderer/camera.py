@@ -139,14 +139,19 @@ class CameraModel:
         return cls(name, width, height, m.reshape(3, 4)[:, :3], dist[:5], T_base_cam)
 
     def scaled(self, s: float) -> CameraModel:
-        """The same camera for an image resized by ``s`` (relative to this image).
-
-        Pixel centres stay exact: u' = (u + 0.5) * sx - 0.5 with sx = W'/W (rounded sizes).
-        """
+        """The same camera for an image resized by ``s`` (sizes rounded), see :meth:`resized`."""
         if not s > 0:
             raise ValueError(f"scale must be > 0, got {s}")
-        width = max(1, round(self.width * s))
-        height = max(1, round(self.height * s))
+        return self.resized(max(1, round(self.width * s)), max(1, round(self.height * s)))
+
+    def resized(self, width: int, height: int) -> CameraModel:
+        """The same camera for its image resized to exactly ``width`` x ``height``.
+
+        Pixel centres stay exact: u' = (u + 0.5) * sx - 0.5 with sx = W'/W and sy = H'/H
+        taken separately, so that a resize with rounded sizes inverts exactly.
+        """
+        if width <= 0 or height <= 0:
+            raise ValueError(f"size must be positive, got {width} x {height}")
         sx, sy = width / self.width, height / self.height
         K = self.K.copy()
         K[0, 0] *= sx
@@ -154,7 +159,7 @@ class CameraModel:
         K[1, 1] *= sy
         K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
         K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-        return CameraModel(self.name, width, height, K, self.dist, self.T_base_cam, self.scale * s)
+        return CameraModel(self.name, width, height, K, self.dist, self.T_base_cam, self.scale * sx)
 
     def to_json(self) -> dict[str, Any]:
         """Plain-JSON form (round-trips through ``from_json``)."""

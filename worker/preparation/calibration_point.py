@@ -197,17 +197,9 @@ def _resolution(wh: Any, where: str) -> tuple[int, int]:
 def camera_at_resolution(cam: CameraModel, width: int, height: int) -> CameraModel:
     """The same camera for its image resized to exactly ``width`` x ``height``.
 
-    Pixel centres stay exact: u' = (u + 0.5) * sx - 0.5 (as :meth:`CameraModel.scaled`, but
-    with independent x and y factors so that rounded sizes invert exactly).
+    Kept for its callers; the mapping is :meth:`CameraModel.resized`.
     """
-    sx, sy = width / cam.width, height / cam.height
-    K = cam.K.copy()
-    K[0, 0] *= sx
-    K[0, 1] *= sx
-    K[1, 1] *= sy
-    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return CameraModel(cam.name, width, height, K, cam.dist, cam.T_base_cam, cam.scale * sx)
+    return cam.resized(width, height)
 
 
 def click_resolution(cam: CameraModel, clicks: Clicks | None = None) -> tuple[int, int]:
