@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from renderer.transforms import invert_T, pose_to_T, transform_points
+from renderer.transforms import invert_T, openlabel_pose_to_T, transform_points
 
 log = logging.getLogger(__name__)
 
@@ -593,5 +593,8 @@ def T_root_cs(coordinate_systems: dict[str, Any], name: str) -> F64:
         pose = cs.get("pose_wrt_parent")
         if pose is None:
             raise ValueError(f"coordinate system {cur}: no pose_wrt_parent")
-        T = pose_to_T(pose["translation"], pose["quaternion"]) @ T
+        try:
+            T = openlabel_pose_to_T(pose) @ T
+        except ValueError as exc:
+            raise ValueError(f"coordinate system {cur}: {exc}") from exc
         cur = parent

@@ -65,6 +65,31 @@ def pose_to_T(translation: ArrayLike, q_xyzw: ArrayLike) -> F64:
     return make_T(quat_to_matrix(q_xyzw), translation)
 
 
+def openlabel_pose_to_T(pose: dict) -> F64:
+    """OpenLABEL ``pose_wrt_parent`` -> (4, 4): ``{"translation", "quaternion" [x,y,z,w]}``
+    (quaternion normalised) or ``{"matrix4x4": 16 values, row-major}``.
+
+    Raises ValueError (with the reason) on missing, malformed or non-finite values.
+    """
+    try:
+        if "matrix4x4" in pose:
+            T = np.asarray(pose["matrix4x4"], dtype=np.float64).reshape(4, 4)
+            if not np.all(np.isfinite(T)):
+                raise ValueError("non-finite matrix4x4")
+            return T
+        t = np.asarray(pose["translation"], dtype=np.float64).reshape(3)
+        q = np.asarray(pose["quaternion"], dtype=np.float64).reshape(4)
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"bad pose: {exc!r}") from exc
+    if not np.all(np.isfinite(t)):
+        raise ValueError("non-finite translation")
+    if not np.all(np.isfinite(q)):
+        raise ValueError("non-finite quaternion")
+    if np.linalg.norm(q) < _MIN_QUAT_NORM:
+        raise ValueError("zero quaternion")
+    return pose_to_T(t, q)
+
+
 def T_to_pose(T: ArrayLike) -> tuple[F64, F64]:
     """(4, 4) -> (translation (3,), quaternion [x, y, z, w] (4,))."""
     T = np.asarray(T, dtype=np.float64)

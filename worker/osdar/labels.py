@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
+from renderer.transforms import openlabel_pose_to_T
 from worker.osdar.errors import SequenceError, atomic_write_bytes
 
 logger = logging.getLogger(__name__)
@@ -239,23 +239,9 @@ def pose_to_matrix(
         Missing, non-finite or degenerate values.
     """
     try:
-        if "matrix4x4" in pose:
-            T = np.asarray(pose["matrix4x4"], dtype=np.float64).reshape(4, 4)
-            _check_finite(where, name, "matrix4x4", T)
-            return T
-        t = np.asarray(pose["translation"], dtype=np.float64).reshape(3)
-        q = np.asarray(pose["quaternion"], dtype=np.float64).reshape(4)
-    except (KeyError, TypeError, ValueError) as e:
+        return openlabel_pose_to_T(pose)
+    except ValueError as e:
         raise SequenceError(where, f"coordinate system {name!r}: bad pose_wrt_parent: {e}") from e
-    _check_finite(where, name, "translation", t)
-    _check_finite(where, name, "quaternion", q)
-    norm = float(np.linalg.norm(q))
-    if norm < 1e-9:
-        raise SequenceError(where, f"coordinate system {name!r}: zero quaternion")
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
-    T[:3, 3] = t
-    return T
 
 
 def _check_finite(where: str | Path, name: str, what: str, values: NDArray) -> None:
