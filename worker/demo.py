@@ -2,8 +2,8 @@
 
 :func:`run_service_demo` (``osdar-ar demo``, ``make demo``) runs the job service embedded -
 the API and a worker on SQLite, the local store and a broker that needs no server - and
-submits the job over HTTP. :func:`run_demo` is the older in-process helper: generate ->
-raw-INS poses -> evaluate against the ground truth -> package.
+submits the job over HTTP. :func:`evaluate_raw_ins` measures the raw INS of a synthetic
+sequence against its ground truth (how close the INS error profile is to the paper's).
 """
 
 from __future__ import annotations
@@ -27,32 +27,6 @@ from worker.poses import PoseTrack, ins_to_base_poses
 from worker.synth.generator import SynthConfig, generate
 
 log = logging.getLogger(__name__)
-
-
-def run_demo(
-    workdir: Path,
-    scene: str = "fire_site",
-    frames: int = 30,
-    scale: float = 0.25,
-    lidar_density: float = 0.25,
-    seed: int = 0,
-    progress: Callable[[int, int], None] | None = None,
-) -> dict[str, Any]:
-    """Run the demo job; returns {"archive": path, "metrics": dict}."""
-    workdir = Path(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
-    seq_dir = workdir / f"{scene}_demo"
-    if seq_dir.exists():
-        shutil.rmtree(seq_dir)
-    cfg = SynthConfig(
-        scene=scene, frames=frames, scale=scale, seed=seed, lidar_density=lidar_density
-    )
-    synth = generate(seq_dir, cfg, progress=progress)
-    metrics = evaluate_raw_ins(seq_dir)
-    metrics["synth_seconds"] = synth.stage_seconds
-    (workdir / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    archive = package(seq_dir, workdir / "metrics.json", workdir / f"{seq_dir.name}.tar.gz")
-    return {"archive": str(archive), "metrics": metrics}
 
 
 def evaluate_raw_ins(seq_dir: Path) -> dict[str, Any]:
@@ -93,22 +67,6 @@ def evaluate_raw_ins(seq_dir: Path) -> dict[str, Any]:
     }
 
 
-def package(seq_dir: Path, metrics: Path, archive: Path) -> Path:
-    """The sequence (without ground truth) and metrics.json as one .tar.gz, atomically."""
-    tmp = archive.with_name(archive.name + ".partial")
-    with tarfile.open(tmp, "w:gz", compresslevel=1) as tar:
-        for path in sorted(seq_dir.rglob("*")):
-            rel = path.relative_to(seq_dir)
-            if rel.parts[0] == "ground_truth" or not path.is_file():
-                continue
-            tar.add(path, arcname=f"{seq_dir.name}/{rel.as_posix()}")
-        tar.add(metrics, arcname=f"{seq_dir.name}/metrics.json")
-    tmp.replace(archive)
-    return archive
-
-
-# ---------------------------------------------------------------------------- service demo
-#: The demo's job: a person standing on the ego track, seen by both cameras and the lidar.
 DEMO_OBJECT = {"builtin": "person", "scale": 1.0}
 DEMO_PLACEMENT = {"mode": "track", "s": 25.0, "offset": 0.0, "yaw_deg": 90.0}
 POLL_INTERVAL_S = 0.5

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from renderer.mesh import ObjectMesh
 from renderer.transforms import invert_T, matrix_to_quat, transform_points
+from worker.osdar.labels import frame_intervals
 
 F64 = NDArray[np.float64]
 
@@ -155,16 +156,6 @@ def _entry(
     return e
 
 
-def _intervals(frames: list[int]) -> list[dict[str, int]]:
-    out: list[dict[str, int]] = []
-    for f in sorted(frames):
-        if out and f == out[-1]["frame_end"] + 1:
-            out[-1]["frame_end"] = f
-        else:
-            out.append({"frame_start": f, "frame_end": f})
-    return out
-
-
 def add_object(
     labels_raw: dict[str, Any],
     *,
@@ -268,11 +259,11 @@ def add_object(
                 point(pl_name, "poly2d", fa.frame_idx, text, b)
         ol["frames"][fkey].setdefault("objects", {})[oid] = {"object_data": data}
     for p in pointers.values():
-        p["frame_intervals"] = _intervals(p.pop("_frames"))
+        p["frame_intervals"] = frame_intervals(p.pop("_frames"))
     ol.setdefault("objects", {})[oid] = {
         "name": f"{obj_class}_synthetic_{n_existing + 1:04d}",
         "type": otype,
-        "frame_intervals": _intervals([fa.frame_idx for fa in frames]),
+        "frame_intervals": frame_intervals([fa.frame_idx for fa in frames]),
         "object_data_pointers": pointers,
     }
     return oid

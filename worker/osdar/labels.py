@@ -298,6 +298,17 @@ def _parse_frame(where: Path, key: str, fr: dict[str, Any]) -> Frame:
 # ---------------------------------------------------------------------------------------
 
 
+def frame_intervals(frames: list[int]) -> list[dict[str, int]]:
+    """Contiguous runs of frame counters as OpenLABEL ``frame_intervals``."""
+    out: list[dict[str, int]] = []
+    for f in sorted(int(x) for x in frames):
+        if out and f == out[-1]["frame_end"] + 1:
+            out[-1]["frame_end"] = f
+        elif not out or f > out[-1]["frame_end"]:
+            out.append({"frame_start": f, "frame_end": f})
+    return out
+
+
 def encode_labels(labels_raw: dict[str, Any]) -> bytes:
     """The bytes :func:`dump_labels` writes: compact JSON like OSDaR23's, newline at the end."""
     text = json.dumps(labels_raw, separators=(",", ":"), ensure_ascii=False, allow_nan=False)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,8 +26,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from renderer.camera import CameraModel, load_cameras
-from renderer.transforms import T_to_pose, invert_T, transform_points
-from worker.geodesy import WorldFrame
+from renderer.transforms import T_to_pose, transform_points
+from worker.osdar.labels import frame_intervals
 from worker.osdar.pcd import PointCloud, header_for_fields
 from worker.osdar.writer import SequenceWriter
 from worker.poses import PoseTrack
@@ -383,7 +383,7 @@ def generate(
             if progress is not None:
                 progress(k + 1, len(schedule))
         counters = [ft.counter for ft in schedule]
-        ol["frame_intervals"] = _intervals(counters)
+        ol["frame_intervals"] = frame_intervals(counters)
 
         # INS for the whole sequence, at the lidar timestamps (the frame's clock).
         tic = time.perf_counter()
@@ -424,17 +424,6 @@ def generate(
         ", ".join(f"{k} {v:.1f}s" for k, v in stages.items()),
     )
     return SynthResult(out, len(schedule), total, stages)
-
-
-def _intervals(counters: list[int]) -> list[dict[str, int]]:
-    """Contiguous runs of frame counters as OpenLABEL frame intervals."""
-    out: list[dict[str, int]] = []
-    for c in sorted(counters):
-        if out and c == out[-1]["frame_end"] + 1:
-            out[-1]["frame_end"] = c
-        else:
-            out.append({"frame_start": c, "frame_end": c})
-    return out
 
 
 def _landmark_pixels(
@@ -560,22 +549,6 @@ def _dump(path: Path, obj: Any) -> None:
     path.write_text(json.dumps(obj, indent=1))
 
 
-def iter_scene_names() -> Iterator[str]:
-    from worker.synth.scenes import SCENE_NAMES as SCENES
-
-    yield from SCENES
-
-
-def world_of(folder: Path) -> WorldFrame:
-    """The world frame a synthetic sequence's ground truth is expressed in."""
-    return WorldFrame.from_json(json.loads((Path(folder) / "ground_truth/world.json").read_text()))
-
-
-def true_camera_pose(track: PoseTrack, cam: CameraModel, t: float) -> F64:
-    """T_world_opt of ``cam`` at time ``t`` from a true base track."""
-    return track.interpolate(np.array([t]))[0] @ cam.T_base_opt
-
-
 __all__ = [
     "SynthConfig",
     "SynthResult",
@@ -583,8 +556,5 @@ __all__ = [
     "default_calibration_path",
     "frame_schedule",
     "generate",
-    "invert_T",
     "ns_to_string",
-    "true_camera_pose",
-    "world_of",
 ]
