@@ -253,3 +253,21 @@ def test_auto_gives_reasons(results: dict) -> None:
         assert auto.extras["reason"]
         assert "auto_crispness_fused_m" in auto.health.metrics
     assert results["hard"]["auto"].extras["chosen"] == "fused"
+
+
+def test_orientation_noise_sees_knot_noise_not_a_smooth_curve() -> None:
+    from worker.preparation.centreline import Centreline
+    from worker.preparation.localization.rails import orientation_noise
+
+    s = np.arange(0.0, 200.0, 2.0)
+    k = 1.0 / 300.0  # a 300 m arc with a steady climb and cant ramp
+    xyz = np.stack([np.sin(k * s) / k, (1 - np.cos(k * s)) / k, 0.01 * s], axis=1)
+    roll = np.linspace(0.0, 0.05, len(s))
+    smooth = orientation_noise(Centreline(xyz, roll), 0.0, 200.0)
+    assert np.all(np.degrees(smooth) < 0.005), np.degrees(smooth)
+    rng = np.random.default_rng(3)
+    noisy = xyz + rng.normal(0.0, 0.01, xyz.shape)  # 1 cm on knots 2 m apart
+    est = np.degrees(orientation_noise(Centreline(noisy, roll), 0.0, 200.0))
+    # pitch and heading: tenths of a degree (0.01 m over 2 m is 0.29 deg); roll untouched
+    assert 0.1 < est[1] < 1.0 and 0.1 < est[2] < 1.0, est
+    assert est[0] < 0.005, est

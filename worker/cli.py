@@ -816,6 +816,11 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--voxel-size", type=float, default=None, help="m, registered cloud voxel")
     p.add_argument(
+        "--dense-radius", type=float, default=None,
+        help="m: refine each calibration point among every frame's full-density points this "
+        "close (default 0.5; 0: the registered cloud's point only, as in the paper)",
+    )  # fmt: skip
+    p.add_argument(
         "--overlay-frames", default=None, help="comma-separated frames (default: 3 per camera)"
     )
     p.add_argument("--no-overlay", action="store_true")
@@ -864,11 +869,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             "warnings": prepared.summary.get("warnings", []),
         }
     cameras = None if args.cameras is None else [c.strip() for c in args.cameras.split(",")]
+    if args.dense_radius is not None and args.dense_radius < 0:
+        raise CliError(f"--dense-radius must be >= 0 m (got {args.dense_radius})")
+    dense_kw = {} if args.dense_radius is None else {"dense_radius_m": args.dense_radius}
     try:
         metrics, rows = evaluate_strategies(
             args.sequence, tracks, world=world, cameras=cameras, clicks=clicks,
             near=args.near, far=args.far, click_noise_px=args.click_noise, seed=args.seed,
-            max_landmarks=args.max_landmarks, preparation=prep,
+            max_landmarks=args.max_landmarks, preparation=prep, **dense_kw,
         )  # fmt: skip
     except (ClicksError, ValueError) as exc:
         raise CliError(str(exc)) from exc

@@ -30,7 +30,8 @@ every landmark; ``landmark_mean`` is the mean over landmarks of their RPE means.
 metrics.json keys (:func:`evaluate_strategies`):
 
 - ``sequence``, ``frames``, ``cameras``, ``strategies``, ``clicks_source``
-  ("file" | "ground_truth"), ``near_m``, ``far_m``, ``click_noise_px``;
+  ("file" | "ground_truth"), ``near_m``, ``far_m``, ``click_noise_px``, ``dense_radius_m``
+  (the calibration point's full-density refinement radius, 0: the registered cloud only);
 - ``rpe[camera][strategy]`` = {``rpe_mean``, ``rpe_std``, ``rpe_max``, ``jitter_mean``,
   ``jitter_std``, ``jitter_max``, ``n``, ``n_jitter``, ``landmark_mean``,
   ``landmarks`` {name: {same statistics, ``calibration_xyz``, ``frames``}}};
@@ -250,6 +251,11 @@ DEFAULT_FAR_M = 80.0
 EVAL_SEARCH_RADIUS_PX = 60.0
 #: A landmark is used when it has at least this many clicked frames in a camera.
 MIN_VIEWS = 5
+#: Radius (m) around the calibration point where every frame's points, at full density,
+#: compete to refine it (calibration_point.py); 0: the registered cloud only (the paper).
+DENSE_RADIUS_M = 0.5
+#: Frame points farther than this from the base are not read for the refinement (m).
+DENSE_MAX_RANGE_M = 120.0
 #: Radius (m) of the calibration sphere drawn in the overlays.
 SPHERE_RADIUS_M = 0.25
 
@@ -369,24 +375,28 @@ def rpe_from_clicks(
     camera_times: dict[str, dict[int, float]],
     clicks: Any,
     search_radius_px: float = EVAL_SEARCH_RADIUS_PX,
+    dense: Any = None,
+    dense_radius_m: float = 0.0,
 ) -> dict[str, dict[str, Any]]:
     """RPE per frame of one landmark in each clicked camera (the paper's definition).
 
-    Per camera the calibration point is chosen from that camera's clicks alone. Returns
+    Per camera the calibration point is chosen from that camera's clicks alone, refined
+    among the full-density points ``dense(centre, radius)`` within ``dense_radius_m`` when
+    given (:func:`~worker.preparation.calibration_point.calibration_point_from_clicks`). Returns
     {camera: {"xyz", "frames", "rpe", "click", "projected", "warnings"}} (pixels at the
     clicks' resolution; frames whose projection fails are left out).
     """
     from worker.preparation.calibration_point import Clicks, calibration_point_from_clicks
     from worker.preparation.config import CalibrationConfig
 
-    cfg = CalibrationConfig(search_radius_px=search_radius_px)
+    cfg = CalibrationConfig(search_radius_px=search_radius_px, dense_radius_m=dense_radius_m)
     out: dict[str, dict[str, Any]] = {}
     for cam_name, frames in sorted(clicks.uv.items()):
         if cam_name not in cameras:
             continue
         one = Clicks(clicks.landmark, {cam_name: frames}, dict(clicks.resolution))
         cal = calibration_point_from_clicks(
-            xyz_world, track, {cam_name: cameras[cam_name]}, camera_times, one, cfg
+            xyz_world, track, {cam_name: cameras[cam_name]}, camera_times, one, cfg, dense
         )
         obs = [o for o in cal.observations if o["residual_px"] is not None]
         out[cam_name] = {
@@ -396,6 +406,7 @@ def rpe_from_clicks(
             "click": [o["click"] for o in obs],
             "projected": [o["projected"] for o in obs],
             "warnings": list(cal.warnings),
+            "refined": cal.refined,
         }
     return out
 
@@ -501,6 +512,19 @@ def _true_errors(
     return out
 
 
+def _frame_clouds(seq: Any) -> Any:
+    """The sequence's frame clouds, full density, read once for every strategy."""
+    from worker.preparation.frame_clouds import FrameClouds
+
+    return FrameClouds(seq, max_range=DENSE_MAX_RANGE_M)
+
+
+def _dense_points(seq: Any, track: Any, clouds: Any) -> Any:
+    from worker.preparation.registration import points_near
+
+    return lambda centre, radius: points_near(seq, track, centre, radius, clouds=clouds)
+
+
 def _at(truth: Any, track: Any) -> np.ndarray:
     return truth.interpolate(track.timestamps, max_extrapolation_s=0.05)
 
@@ -518,6 +542,7 @@ def evaluate_strategies(
     seed: int = 0,
     max_landmarks: int = 8,
     preparation: dict[str, Any] | None = None,
+    dense_radius_m: float = DENSE_RADIUS_M,
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """The paper's RPE and jitter per camera and strategy (module docstring).
 
@@ -529,6 +554,9 @@ def evaluate_strategies(
     cameras : cameras to evaluate (default: the clicked ones, else every camera).
     clicks : landmarks' clicks (None: from the ground truth; then it must exist).
     preparation : {strategy: {...}} copied into the metrics.
+    dense_radius_m : refine each calibration point among the full-density points of every
+        frame within this radius (m), registered with the strategy's poses; 0: the paper's
+        point of the given cloud only.
 
     Returns
     -------
@@ -571,13 +599,18 @@ def evaluate_strategies(
         "near_m": near if source == "ground_truth" else None,
         "far_m": far if source == "ground_truth" else None,
         "click_noise_px": click_noise_px if source == "ground_truth" else None,
+        "dense_radius_m": dense_radius_m,
         "rpe": {},
     }
     rows: list[dict[str, Any]] = []
+    clouds = _frame_clouds(seq) if dense_radius_m > 0 else None
     for strategy, (track, xyz) in tracks.items():
         per_cam: dict[str, dict[str, Any]] = {c: {} for c in cams}
+        dense = None if clouds is None else _dense_points(seq, track, clouds)
         for cl in clicks:
-            for cam_name, s in rpe_from_clicks(xyz, track, cams, times, cl).items():
+            for cam_name, s in rpe_from_clicks(
+                xyz, track, cams, times, cl, dense=dense, dense_radius_m=dense_radius_m
+            ).items():
                 per_cam[cam_name][cl.landmark] = s
                 jit = _jitter(s["frames"], s["rpe"])
                 for k, f in enumerate(s["frames"]):

@@ -19,7 +19,8 @@ Layout of an artifact folder (``ARTIFACT_VERSION`` 1)::
     reference_poses/       ins.csv, odometry.csv: the raw INS and the KISS-ICP poses at
                            the same frames (for comparison tables)
 
-The cache key is ``sha256(content_key, config_hash, clicks digest, ARTIFACT_VERSION)``.
+The cache key is ``sha256(content_key, config_hash, clicks digest, ARTIFACT_VERSION,
+PREPARATION_REVISION)``.
 An artifact is written into a temporary sibling folder and renamed into place; under a
 cache folder, an ``fcntl`` lock per key makes a second preparation of the same key wait
 and then reuse the first one's result.
@@ -54,6 +55,10 @@ from worker.preparation.scene_elements import Plane, Pole
 log = logging.getLogger(__name__)
 
 ARTIFACT_VERSION = 1
+#: Revision of the preparation's results: bumped whenever a change of the code changes what
+#: a preparation of the same sequence with the same config produces (a strategy's weights,
+#: the centreline fit...), so that artifacts cached by an older release are not reused.
+PREPARATION_REVISION = 4
 
 FILES = (
     "poses.csv",
@@ -68,8 +73,12 @@ FILES = (
 
 
 def cache_key(content_key: str, config_hash: str, clicks_digest: str | None = None) -> str:
-    """sha256 hex over the sequence content, the config, the clicks and the version."""
-    text = f"{content_key}\0{config_hash}\0{clicks_digest or ''}\0{ARTIFACT_VERSION}"
+    """sha256 hex over the sequence content, the config, the clicks, the layout version and
+    the preparation revision."""
+    text = (
+        f"{content_key}\0{config_hash}\0{clicks_digest or ''}\0{ARTIFACT_VERSION}"
+        f"\0{PREPARATION_REVISION}"
+    )
     return hashlib.sha256(text.encode()).hexdigest()
 
 

@@ -97,6 +97,9 @@ class CalibrationConfig(_Section):
 
     search_radius_px: float = Field(30.0, gt=0.0)  # neighbourhood of a click (full res. px)
     seed_frames: int = Field(6, ge=1)  # clicked views that seed the candidate points
+    #: m: refine the chosen point among every frame's points within this radius at full
+    #: density (registration.points_near); 0 keeps the registered cloud's point.
+    dense_radius_m: float = Field(0.5, ge=0.0)
     auto: bool = True  # propose pole tops when there are no clicks
     auto_proposals: int = Field(3, ge=1)  # pole tops listed
     auto_min_depth: float = Field(3.0, gt=0.0)  # m, in front of the camera

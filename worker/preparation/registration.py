@@ -143,6 +143,43 @@ def register_clouds(
     return merged
 
 
+def points_near(
+    seq: Sequence,
+    track: PoseTrack,
+    centre_world: F64,
+    radius: float,
+    clouds: FrameClouds | None = None,
+    frames: Iterable[int] | None = None,
+) -> F64:
+    """Every frame's points within ``radius`` of ``centre_world``, at full density.
+
+    The registered cloud is voxel-filtered and built from every ``frame_step``-th frame, so
+    its nearest point to a small landmark (a pole top) can sit a voxel or a beam gap away
+    from it; this gathers all the points of all the frames near one place instead, each
+    registered with ``track`` (T_world_base at the frame's lidar timestamp).
+
+    centre_world : (3,) world point; radius : m. Returns (n, 3) float64 world points.
+    """
+    lidar = seq.lidar_stream
+    if lidar is None:
+        raise ValueError(f"sequence {seq.name} has no lidar stream")
+    ts = dict(zip(seq.frame_indices, seq.timestamps(lidar), strict=True))
+    counters = [f for f in (seq.frame_indices if frames is None else frames) if np.isfinite(ts[f])]
+    if not counters:
+        return np.zeros((0, 3))
+    T_all = track.interpolate(np.array([ts[f] for f in counters]))
+    c = np.asarray(centre_world, dtype=np.float64).reshape(3)
+    out = []
+    for f, T in zip(counters, T_all, strict=True):
+        p_base = _frame_points(seq, f, clouds)[0]
+        c_base = (c - T[:3, 3]) @ T[:3, :3]
+        d = p_base - c_base
+        near = np.einsum("ij,ij->i", d, d) <= radius * radius
+        if np.any(near):
+            out.append(transform_points(T, p_base[near]))
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
 def _frame_points(
     seq: Sequence, frame: int, clouds: FrameClouds | None
 ) -> tuple[F64, NDArray[np.uint8], NDArray[np.float32]]:

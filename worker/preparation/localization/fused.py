@@ -65,7 +65,7 @@ from worker.preparation.localization.odometry import (
     odometry_run,
     odometry_track,
 )
-from worker.preparation.localization.rails import rail_frames
+from worker.preparation.localization.rails import orientation_noise, rail_frames
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -80,11 +80,24 @@ class Sigmas:
     odo_t: float = 0.015
     odo_r: float = 0.03 * DEG
     odo_t_degenerate: float = 2.0
-    ins_p: float = 0.05
+    #: INS positions drift by centimetres to decimetres over seconds (GNSS multipath, the
+    #: filter's own random walk): weighted as 0.1 m so that the odometry carries the
+    #: frame-to-frame motion (at 5 cm the fused along-track step noise was 10 mm against
+    #: KISS-ICP's 6; at 0.2 m a 3 m GNSS jump leaked into the poses).
+    ins_p: float = 0.1
     ins_r: float = 0.03 * DEG
     rail_lat: float = 0.015
     rail_vert: float = 0.01
+    #: Floor of the rail orientation sigmas (roll, pitch, heading). The sigmas used are the
+    #: larger of this and ``rail_r_gain`` times the centreline's own measured orientation
+    #: noise (:func:`~worker.preparation.localization.rails.orientation_noise`): a fitted
+    #: centreline's tangent and slope are noisy over a few metres (0.2-0.4 deg on the
+    #: synthetic fire_site, from cm noise on knots 2 m apart), and then the rails fix the
+    #: orientation on average (through the positions on the centreline) while the odometry
+    #: and INS attitude carry its changes. With the floor alone (0.05 deg) the fused jitter
+    #: on rgb_highres_center was 1.5 px.
     rail_r: tuple[float, float, float] = (0.05 * DEG, 0.05 * DEG, 0.05 * DEG)
+    rail_r_gain: float = 1.0
     acc: float = 0.02
     rot_acc: float = 0.02 * DEG
     lever: float = 1.0
@@ -128,13 +141,16 @@ def _rotvec_rates(R: F64, times: F64) -> F64:
     return (rot[i1] * rot[i0].inv()).as_rotvec() / dt[:, None]
 
 
-def _linearise_rails(ego, p_world: F64, R_hint: F64) -> dict:
-    """Centreline frames at the projections of ``p_world`` (flipped to face like R_hint)."""
-    T, _, _ = rail_frames(ego, p_world)
+def _linearise_rails(ego, p_world: F64, R_hint: F64, sig: Sigmas) -> dict:
+    """Centreline frames at the projections of ``p_world`` (flipped to face like R_hint)
+    and the orientation sigmas (3,) rad there (floor, or the centreline's own noise)."""
+    T, s, _ = rail_frames(ego, p_world)
     cos = np.einsum("ni,ni->n", R_hint[:, :, 0], T[:, :3, 0])
     if np.median(cos) < 0.0:
         T[:, :3, :3] = T[:, :3, :3] @ np.diag([-1.0, -1.0, 1.0])
-    return {"c": T[:, :3, 3].copy(), "R": T[:, :3, :3].copy()}
+    noise = orientation_noise(ego, float(np.min(s)), float(np.max(s))) if len(s) else np.zeros(3)
+    sigma_r = np.maximum(np.asarray(sig.rail_r, dtype=np.float64), sig.rail_r_gain * noise)
+    return {"c": T[:, :3, 3].copy(), "R": T[:, :3, :3].copy(), "sigma_r": sigma_r}
 
 
 def _unpack(x: F64, pb: Problem) -> tuple[F64, F64, F64, F64, float]:
@@ -178,7 +194,7 @@ def residuals(x: F64, pb: Problem) -> F64:
         out.append(lat_r)
         out.append(ver_r)
         err = Rotation.from_matrix(np.swapaxes(Rr, 1, 2) @ R).as_rotvec()
-        out.append((err / np.asarray(sig.rail_r)).ravel())
+        out.append((err / pb.rail["sigma_r"]).ravel())
     # smoothness
     if pb.n >= 3:
         out.append(((p[:-2] - 2.0 * p[1:-1] + p[2:]) / sig.acc).ravel())
@@ -287,7 +303,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     if inp.ego is not None:
         try:
             T_r, _, _ = rail_frames(inp.ego, p_ins_all)
-            rail = _linearise_rails(inp.ego, p_ins_all, R_ins_all)
+            rail = _linearise_rails(inp.ego, p_ins_all, R_ins_all, sig)
             R0, p0 = rail["R"].copy(), T_r[:, :3, 3]
         except Exception as exc:
             health.warn(f"fused: rail constraint unusable ({exc}); without rails")
@@ -445,6 +461,9 @@ def _block_rms(pb: Problem, x: F64) -> dict[str, float]:
         seg = r[i : i + size]
         out[f"fused_rms_{name}"] = float(np.sqrt(np.mean(seg**2))) if size else 0.0
         i += size
+    if pb.rail is not None:
+        for axis, sigma in zip(("roll", "pitch", "heading"), pb.rail["sigma_r"], strict=True):
+            out[f"fused_rail_sigma_{axis}_deg"] = float(np.degrees(sigma))
     return out
 
 
@@ -465,7 +484,7 @@ class FusedStrategy:
             if pb.rail is not None and inp.ego is not None:
                 pb, x = _rebase(x, pb)
                 R, p, _, _, _ = _unpack(x, pb)
-                pb.rail = _linearise_rails(inp.ego, p, R)
+                pb.rail = _linearise_rails(inp.ego, p, R, pb.sig)
                 x = solve(pb, x, max_iter=4)
         except Exception as exc:
             log.exception("fused smoothing failed")

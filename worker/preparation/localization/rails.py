@@ -50,6 +50,34 @@ def rail_frames(ego: Centreline, p_world: F64) -> tuple[F64, F64, F64]:
     return T, s, np.asarray(proj.distance, dtype=np.float64)
 
 
+#: Spacing (m) at which :func:`orientation_noise` samples the centreline: twice the
+#: fit's knot spacing (tracks.FitOptions.station_step), where the knots' noise shows.
+NOISE_STEP_M = 4.0
+
+
+def orientation_noise(ego: Centreline, s_lo: float, s_hi: float) -> F64:
+    """Noise (rad) of the centreline frame's roll, pitch and heading over ``[s_lo, s_hi]``.
+
+    A railway alignment is smooth (straights, arcs, clothoids, linear cant ramps): sampled
+    every :data:`NOISE_STEP_M` its roll, pitch and heading have second differences near
+    zero, while a fitted centreline's knot noise shows in them. Robust std of the second
+    differences / sqrt(6) (white noise). Returns (3,) [roll, pitch, heading]; zeros for
+    fewer than 5 samples.
+    """
+    lo, hi = max(0.0, float(s_lo)), min(ego.length, float(s_hi))
+    s = np.arange(lo, hi + 1e-9, NOISE_STEP_M)
+    if len(s) < 5:
+        return np.zeros(3)
+    t = ego.tangent(s)
+    heading = np.unwrap(np.arctan2(t[:, 1], t[:, 0]))
+    pitch = np.arcsin(np.clip(t[:, 2], -1.0, 1.0))
+    out = np.zeros(3)
+    for i, a in enumerate((ego.roll(s), pitch, heading)):
+        d2 = a[:-2] - 2.0 * a[1:-1] + a[2:]
+        out[i] = 1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0)
+    return out
+
+
 class RailsStrategy:
     """INS projected onto the ego centreline (the paper's refinement)."""
 
