@@ -24,6 +24,9 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 REDIS_URL = "redis://127.0.0.1:6379/11"
+#: Environment of the worker processes (``--threads N`` caps each process's BLAS / OpenMP /
+#: llvmpipe threads).
+THREAD_ENV: dict[str, str] = {}
 
 
 def _spec(seq_id: str) -> dict[str, Any]:
@@ -52,8 +55,29 @@ def _wait_all(client: Any, headers: dict[str, str], ids: list[str], timeout_s: f
         raise RuntimeError(f"{len(pending)} jobs still running after {timeout_s} s")
 
 
-def run_batch(seq_folder: Path, workers: int, jobs: int, root: Path) -> float:
-    """Seconds for a batch of ``jobs`` on a worker with ``workers`` processes."""
+def _tree_cpu_s(proc: Any) -> float:
+    """User + system CPU seconds of a process and its live children (psutil)."""
+    import psutil
+
+    total = 0.0
+    try:
+        root = psutil.Process(proc.pid)
+        for p in [root, *root.children(recursive=True)]:
+            try:
+                t = p.cpu_times()
+                total += t.user + t.system
+            except psutil.NoSuchProcess:
+                pass
+    except psutil.NoSuchProcess:
+        pass
+    return total
+
+
+def run_batch(seq_folder: Path, workers: int, jobs: int, root: Path) -> tuple[float, float]:
+    """(seconds, busy cores) for a batch of ``jobs`` on a worker with ``workers`` processes.
+
+    Busy cores = CPU seconds of the worker's process tree during the batch / its wall time
+    (prefork children live for the whole run, so their counters cover the batch)."""
     import redis
     from fastapi.testclient import TestClient
 
@@ -81,7 +105,10 @@ def run_batch(seq_folder: Path, workers: int, jobs: int, root: Path) -> float:
             session=s, name="bench", pepper=settings.api_key_pepper.get_secret_value()
         )
     headers = {"Authorization": f"Bearer {secret}"}
-    proc = start_worker(settings, pool="prefork", concurrency=workers, log_file=data / "w.log")
+    proc = start_worker(
+        settings, pool="prefork", concurrency=workers, log_file=data / "w.log",
+        extra_env=THREAD_ENV,
+    )  # fmt: skip
     try:
         with TestClient(app) as client:
             r = client.post("/v1/sequences", json={"path": str(seq_folder)}, headers=headers)
@@ -89,13 +116,22 @@ def run_batch(seq_folder: Path, workers: int, jobs: int, root: Path) -> float:
             seq_id = r.json()["id"]
             warm = client.post("/v1/jobs", json=_spec(seq_id), headers=headers).json()["id"]
             _wait_all(client, headers, [warm], 600)
-            t0 = time.perf_counter()
+            cpu0, t0 = _tree_cpu_s(proc), time.perf_counter()
             ids = [
                 client.post("/v1/jobs", json=_spec(seq_id), headers=headers).json()["id"]
                 for _ in range(jobs)
             ]
             _wait_all(client, headers, ids, 1800)
-            return time.perf_counter() - t0
+            wall = time.perf_counter() - t0
+            cores = (_tree_cpu_s(proc) - cpu0) / wall
+            stages: dict[str, list[float]] = {}
+            for job_id in ids:
+                timings = client.get(f"/v1/jobs/{job_id}", headers=headers).json()["timings"]
+                for name, sec in (timings or {}).items():
+                    stages.setdefault(name.split("[")[0], []).append(float(sec))
+            summary = ", ".join(f"{k} {sum(v) / len(ids):.2f}" for k, v in sorted(stages.items()))
+            print(f"{workers} worker(s), stage seconds per job: {summary}")
+            return wall, cores
     finally:
         stop_worker(proc)
         app.state.engine.dispose()
@@ -107,8 +143,17 @@ def main() -> int:
     ap.add_argument("--jobs", type=int, default=6)
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--redis-url", default=REDIS_URL, help="a Redis DB this run may flush")
+    ap.add_argument(
+        "--threads", type=int, default=0,
+        help="threads per worker process (0: the workers' own caps, worker/jobs/threads.py)",
+    )  # fmt: skip
     args = ap.parse_args()
     globals()["REDIS_URL"] = args.redis_url
+    if args.threads > 0:
+        n = str(args.threads)
+        THREAD_ENV.update(
+            OMP_NUM_THREADS=n, OPENBLAS_NUM_THREADS=n, MKL_NUM_THREADS=n, LP_NUM_THREADS=n
+        )
     from worker.synth.generator import SynthConfig, generate
 
     root = Path(tempfile.mkdtemp(prefix="osdar_throughput_"))
@@ -120,12 +165,12 @@ def main() -> int:
         seconds = {w: run_batch(seq, w, args.jobs, root) for w in (1, 2)}
     finally:
         shutil.rmtree(root, ignore_errors=True)
-    for w, s in seconds.items():
+    for w, (s, cores) in seconds.items():
         print(
             f"{w} worker process(es): {args.jobs} jobs in {s:.1f} s = "
-            f"{60 * args.jobs / s:.1f} jobs/min"
+            f"{60 * args.jobs / s:.1f} jobs/min, {cores:.2f} cores busy"
         )
-    print(f"throughput ratio 2 / 1 workers: {seconds[1] / seconds[2]:.2f}")
+    print(f"throughput ratio 2 / 1 workers: {seconds[1][0] / seconds[2][0]:.2f}")
     return 0
 
 

@@ -339,6 +339,10 @@ def _add_worker(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_worker(args: argparse.Namespace) -> int:
+    from worker.jobs.threads import thread_caps
+
+    # Before anything imports numpy: the prefork children inherit the caps.
+    os.environ.update(thread_caps(args.concurrency))
     from worker.jobs.celery_app import QUEUE, celery_app
 
     argv = ["worker", "--pool", args.pool, "--queues", QUEUE, "--loglevel", args.loglevel]

@@ -33,6 +33,7 @@ from pydantic import SecretStr
 
 from worker.jobs.celery_app import QUEUE, make_celery
 from worker.jobs.settings import Settings
+from worker.jobs.threads import thread_caps
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +116,7 @@ def start_worker(
     for plain in ("DATABASE_URL", "BROKER_URL", "STORE_URL"):
         env.pop(plain, None)
     env.update(settings_env(settings))
+    env.update(thread_caps(concurrency, env))
     env.update(extra_env or {})
     out: Any = subprocess.DEVNULL
     if log_file is not None:

@@ -1,0 +1,22 @@
+"""Thread caps of the worker processes (worker/jobs/threads.py)."""
+
+from __future__ import annotations
+
+import os
+
+from worker.jobs.threads import THREAD_VARS, thread_caps
+
+
+def test_caps_split_the_cores_between_processes(monkeypatch) -> None:
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    assert thread_caps(2, {}) == {k: "4" for k in THREAD_VARS}
+    assert thread_caps(3, {}) == {k: "2" for k in THREAD_VARS}
+    assert thread_caps(16, {}) == {k: "1" for k in THREAD_VARS}  # never 0
+    assert thread_caps(None, {}) == {k: "1" for k in THREAD_VARS}  # celery: one per core
+    assert thread_caps(1, {}) == {k: "8" for k in THREAD_VARS}
+
+
+def test_a_users_setting_is_kept(monkeypatch) -> None:
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    caps = thread_caps(2, {"OMP_NUM_THREADS": "3"})
+    assert "OMP_NUM_THREADS" not in caps and caps["LP_NUM_THREADS"] == "1"
