@@ -29,11 +29,9 @@ import shutil
 import statistics
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -41,65 +39,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from renderer.lidar_cast import hidden_from, origins_from_json, point_origins
 from renderer.transforms import invert_T
 from worker.augmentation.augment import (
-    _pool_context,
     augment,
     cast_frame_lidar,
     plan_augmentation,
 )
 from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel, RenderSpec
-from worker.osdar.errors import atomic_write_bytes
-from worker.osdar.pcd import read_pcd, write_pcd
+from worker.bench.floor import measure_floor
+from worker.osdar.pcd import read_pcd
 from worker.osdar.sequence import Sequence, uri_to_path
 from worker.preparation.config import PrepareConfig
 from worker.preparation.prepare import prepare
 
 log = logging.getLogger("bench_augment")
-
-
-def _io_frame(jobs: list[tuple[str, str, str]], compression: int) -> float:
-    """Decode + encode PNGs (OpenCV, BGR as decoded: no colour conversion), read + write
-    PCDs, of one frame; returns seconds. The strictest floor of the job's own I/O."""
-    tic = time.perf_counter()
-    for kind, src, dst in jobs:
-        if kind == "png":
-            img = cv2.imread(src, cv2.IMREAD_UNCHANGED)
-            _, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, compression])
-            atomic_write_bytes(dst, buf.tobytes())
-        else:
-            write_pcd(dst, read_pcd(src))
-    return time.perf_counter() - tic
-
-
-def _noop(_: int = 0) -> int:
-    return 0
-
-
-def measure_floor(
-    seq: Sequence, frames: list[int], streams: list[str], workers: int, compression: int, out: Path
-) -> float:
-    """Wall seconds of the I/O floor (module docstring)."""
-    shutil.rmtree(out, ignore_errors=True)
-    tasks = []
-    for f in frames:
-        jobs = []
-        for s in streams:
-            src = seq.path(f, s)
-            rel = src.relative_to(seq.folder)
-            jobs.append(("png" if src.suffix == ".png" else "pcd", str(src), str(out / rel)))
-        tasks.append(jobs)
-    if workers <= 1:
-        tic = time.perf_counter()
-        for jobs in tasks:
-            _io_frame(jobs, compression)
-        wall = time.perf_counter() - tic
-    else:
-        with ProcessPoolExecutor(workers, mp_context=_pool_context()) as pool:
-            list(pool.map(_noop, range(workers * 2)))  # workers up before the clock
-            tic = time.perf_counter()
-            list(pool.map(_io_frame, tasks, [compression] * len(tasks)))
-            wall = time.perf_counter() - tic
-    shutil.rmtree(out, ignore_errors=True)
-    return wall
 
 
 def origins_gain(seq_folder: Path, spec: AugmentSpec, prepared: Any, origins_file: Path) -> None:

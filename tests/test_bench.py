@@ -77,3 +77,17 @@ def test_bench_hard_json(tmp_path: Path) -> None:
     assert [c["case"] for c in cases] == list(range(1, 13))
     for c in cases:
         assert {"title", "degrades", "warning", "error", "bound", "unit", "ok"} <= set(c)
+
+
+def test_floor_with_a_process_pool(tmp_path: Path) -> None:
+    """The full bench's floor runs in a pool of 2: its functions must unpickle there."""
+    from tests.synth_fixtures import synth_sequence
+    from worker.bench.floor import measure_floor
+    from worker.osdar.sequence import Sequence
+
+    seq = Sequence.open(synth_sequence(tmp_path))
+    frames = seq.frame_indices[:4]
+    streams = [seq.cameras[0]] + ([seq.lidar_stream] if seq.lidar_stream else [])
+    seconds = measure_floor(seq, frames, streams, 2, 1, tmp_path / "floor")
+    assert 0.0 < seconds < 120.0
+    assert not (tmp_path / "floor").exists()  # nothing left behind

@@ -1,31 +1,74 @@
 """The augmentation job against its I/O floor (BENCHMARK.md), in one run.
 
-The floor is ``scripts/bench_augment.py``'s :func:`measure_floor` (decode + re-encode the
-same PNGs at the same compression, read + write the same PCDs, same worker count); the
-job is :func:`worker.augmentation.augment.augment` with the preparation given. Returns
-job seconds / floor seconds (median over ``runs``, floor and job alternating).
+The floor is :func:`measure_floor` (decode + re-encode the same PNGs at the same
+compression, read + write the same PCDs, same worker count; ``scripts/bench_augment.py``
+uses it too); the job is :func:`worker.augmentation.augment.augment` with the preparation
+given. Returns job seconds / floor seconds (median over ``runs``, floor and job
+alternating). The floor's pool runs functions of this module: an importable module, which
+the pool's processes can unpickle them from.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import shutil
 import statistics
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_augment.py"
+import cv2
+
+from worker.augmentation.augment import _pool_context
+from worker.osdar.errors import atomic_write_bytes
+from worker.osdar.pcd import read_pcd, write_pcd
+from worker.osdar.sequence import Sequence
 
 
-def _measure_floor() -> Any:
-    """``measure_floor`` of scripts/bench_augment.py (one implementation of the floor)."""
-    spec = importlib.util.spec_from_file_location("_osdar_bench_augment", SCRIPT)
-    if spec is None or spec.loader is None:
-        raise RuntimeError(f"{SCRIPT}: cannot load the floor measurement")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.measure_floor
+def _io_frame(jobs: list[tuple[str, str, str]], compression: int) -> float:
+    """Decode + encode PNGs (OpenCV, BGR as decoded: no colour conversion), read + write
+    PCDs, of one frame; returns seconds. The strictest floor of the job's own I/O."""
+    tic = time.perf_counter()
+    for kind, src, dst in jobs:
+        if kind == "png":
+            img = cv2.imread(src, cv2.IMREAD_UNCHANGED)
+            _, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, compression])
+            atomic_write_bytes(dst, buf.tobytes())
+        else:
+            write_pcd(dst, read_pcd(src))
+    return time.perf_counter() - tic
+
+
+def _noop(_: int = 0) -> int:
+    return 0
+
+
+def measure_floor(
+    seq: Sequence, frames: list[int], streams: list[str], workers: int, compression: int, out: Path
+) -> float:
+    """Wall seconds of the I/O floor (module docstring)."""
+    shutil.rmtree(out, ignore_errors=True)
+    tasks = []
+    for f in frames:
+        jobs = []
+        for s in streams:
+            src = seq.path(f, s)
+            rel = src.relative_to(seq.folder)
+            jobs.append(("png" if src.suffix == ".png" else "pcd", str(src), str(out / rel)))
+        tasks.append(jobs)
+    if workers <= 1:
+        tic = time.perf_counter()
+        for jobs in tasks:
+            _io_frame(jobs, compression)
+        wall = time.perf_counter() - tic
+    else:
+        with ProcessPoolExecutor(workers, mp_context=_pool_context()) as pool:
+            list(pool.map(_noop, range(workers * 2)))  # workers up before the clock
+            tic = time.perf_counter()
+            list(pool.map(_io_frame, tasks, [compression] * len(tasks)))
+            wall = time.perf_counter() - tic
+    shutil.rmtree(out, ignore_errors=True)
+    return wall
 
 
 def floor_ratio(
@@ -42,9 +85,7 @@ def floor_ratio(
     """{"floor_ratio", "floor_s", "job_s", "workers", "frames"}."""
     from worker.augmentation.augment import augment
     from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel, RenderSpec
-    from worker.osdar.sequence import Sequence
 
-    measure_floor = _measure_floor()
     seq = Sequence.open(seq_folder)
     spec = AugmentSpec(
         object=ObjectSource.from_cli(obj),
