@@ -271,3 +271,20 @@ def test_orientation_noise_sees_knot_noise_not_a_smooth_curve() -> None:
     # pitch and heading: tenths of a degree (0.01 m over 2 m is 0.29 deg); roll untouched
     assert 0.1 < est[1] < 1.0 and 0.1 < est[2] < 1.0, est
     assert est[0] < 0.005, est
+
+
+def test_fused_rail_sigmas_follow_the_centrelines_noise(results: dict, seqs: dict) -> None:
+    """True centreline: the 0.05 deg floor; knots with 1 cm of noise: tenths of a degree on
+    pitch and heading, so the noisy tangent no longer drives the rotations."""
+    floor = results["fire_site"]["fused"].health.metrics
+    assert all(
+        abs(floor[f"fused_rail_sigma_{a}_deg"] - 0.05) < 1e-9 for a in ("roll", "pitch", "heading")
+    ), floor
+    inp = _input(seqs["fire_site"])
+    ego = inp.ego
+    s = np.arange(0.0, ego.length, 2.0)
+    noisy = ego.point(s) + np.random.default_rng(5).normal(0.0, 0.01, (len(s), 3))
+    inp.ego = Centreline(noisy, ego.roll(s), ego=True)
+    m = run_strategy("fused", inp).health.metrics
+    assert m["fused_rail_sigma_pitch_deg"] > 0.1 and m["fused_rail_sigma_heading_deg"] > 0.1, m
+    assert m["fused_rail_sigma_roll_deg"] < 0.06, m

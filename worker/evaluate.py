@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 
 from worker.preparation.artifact import PreparedSequence
+from worker.preparation.config import CalibrationConfig
 
 log = logging.getLogger(__name__)
 
@@ -253,7 +254,7 @@ EVAL_SEARCH_RADIUS_PX = 60.0
 MIN_VIEWS = 5
 #: Radius (m) around the calibration point where every frame's points, at full density,
 #: compete to refine it (calibration_point.py); 0: the registered cloud only (the paper).
-DENSE_RADIUS_M = 0.5
+DENSE_RADIUS_M = CalibrationConfig().dense_radius_m
 #: Frame points farther than this from the base are not read for the refinement (m).
 DENSE_MAX_RANGE_M = 120.0
 #: Radius (m) of the calibration sphere drawn in the overlays.
@@ -387,7 +388,6 @@ def rpe_from_clicks(
     clicks' resolution; frames whose projection fails are left out).
     """
     from worker.preparation.calibration_point import Clicks, calibration_point_from_clicks
-    from worker.preparation.config import CalibrationConfig
 
     cfg = CalibrationConfig(search_radius_px=search_radius_px, dense_radius_m=dense_radius_m)
     out: dict[str, dict[str, Any]] = {}
@@ -519,12 +519,6 @@ def _frame_clouds(seq: Any) -> Any:
     return FrameClouds(seq, max_range=DENSE_MAX_RANGE_M)
 
 
-def _dense_points(seq: Any, track: Any, clouds: Any) -> Any:
-    from worker.preparation.registration import points_near
-
-    return lambda centre, radius: points_near(seq, track, centre, radius, clouds=clouds)
-
-
 def _at(truth: Any, track: Any) -> np.ndarray:
     return truth.interpolate(track.timestamps, max_extrapolation_s=0.05)
 
@@ -602,11 +596,13 @@ def evaluate_strategies(
         "dense_radius_m": dense_radius_m,
         "rpe": {},
     }
+    from worker.preparation.registration import dense_points
+
     rows: list[dict[str, Any]] = []
     clouds = _frame_clouds(seq) if dense_radius_m > 0 else None
     for strategy, (track, xyz) in tracks.items():
         per_cam: dict[str, dict[str, Any]] = {c: {} for c in cams}
-        dense = None if clouds is None else _dense_points(seq, track, clouds)
+        dense = None if clouds is None else dense_points(seq, track, clouds)
         for cl in clicks:
             for cam_name, s in rpe_from_clicks(
                 xyz, track, cams, times, cl, dense=dense, dense_radius_m=dense_radius_m

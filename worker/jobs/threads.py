@@ -4,7 +4,7 @@ numpy's BLAS, OpenMP (open3d, KISS-ICP) and Mesa's llvmpipe each start a thread 
 every process. With ``--concurrency N`` on C cores, N worker processes each running C
 threads oversubscribe the machine: on 2 cores, 2 worker processes ran a batch of 40-frame
 jobs only 1.06-1.29 times faster than one, the evaluate stage taking 2.9-3.6 s per job
-instead of 1.3 (``scripts/bench_throughput.py``); with the caps below, 1.75 times faster.
+instead of 1.3 (``scripts/bench_throughput.py``); with the caps below, 1.60 times faster.
 """
 
 from __future__ import annotations

@@ -57,7 +57,7 @@ from worker.preparation.calibration_point import (
 from worker.preparation.config import PrepareConfig
 from worker.preparation.frame_clouds import FrameClouds
 from worker.preparation.localization.anchor import anchored_to_ins
-from worker.preparation.registration import RegisteredCloud, points_near, register_clouds
+from worker.preparation.registration import RegisteredCloud, dense_points, register_clouds
 from worker.preparation.scene_elements import find_scene_elements, reference_centreline
 
 log = logging.getLogger(__name__)
@@ -267,7 +267,7 @@ def run_preparation(
         if cl is not None:
             cal = calibration_point_from_clicks(
                 cloud.xyz, track, cameras, times, cl, config.calibration,
-                dense=lambda c, r: points_near(seq, track, c, r, clouds=clouds),
+                dense=dense_points(seq, track, clouds),
             )  # fmt: skip
         elif config.calibration.auto:
             cal = propose_pole_tops(scene.poles, track, cameras, times, config.calibration)

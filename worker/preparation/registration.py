@@ -8,7 +8,7 @@ Each kept point remembers its frame and sensor_index.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,6 +178,14 @@ def points_near(
         if np.any(near):
             out.append(transform_points(T, p_base[near]))
     return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def dense_points(
+    seq: Sequence, track: PoseTrack, clouds: FrameClouds | None = None
+) -> Callable[[F64, float], F64]:
+    """``points_near`` bound to a sequence, a pose track and its frame clouds: the
+    ``dense`` argument of the calibration point's full-density refinement."""
+    return lambda centre, radius: points_near(seq, track, centre, radius, clouds=clouds)
 
 
 def _frame_points(

@@ -89,15 +89,14 @@ class Sigmas:
     rail_lat: float = 0.015
     rail_vert: float = 0.01
     #: Floor of the rail orientation sigmas (roll, pitch, heading). The sigmas used are the
-    #: larger of this and ``rail_r_gain`` times the centreline's own measured orientation
-    #: noise (:func:`~worker.preparation.localization.rails.orientation_noise`): a fitted
+    #: larger of this and the centreline's own measured orientation noise
+    #: (:func:`~worker.preparation.localization.rails.orientation_noise`): a fitted
     #: centreline's tangent and slope are noisy over a few metres (0.2-0.4 deg on the
     #: synthetic fire_site, from cm noise on knots 2 m apart), and then the rails fix the
     #: orientation on average (through the positions on the centreline) while the odometry
     #: and INS attitude carry its changes. With the floor alone (0.05 deg) the fused jitter
     #: on rgb_highres_center was 1.5 px.
     rail_r: tuple[float, float, float] = (0.05 * DEG, 0.05 * DEG, 0.05 * DEG)
-    rail_r_gain: float = 1.0
     acc: float = 0.02
     rot_acc: float = 0.02 * DEG
     lever: float = 1.0
@@ -149,7 +148,7 @@ def _linearise_rails(ego, p_world: F64, R_hint: F64, sig: Sigmas) -> dict:
     if np.median(cos) < 0.0:
         T[:, :3, :3] = T[:, :3, :3] @ np.diag([-1.0, -1.0, 1.0])
     noise = orientation_noise(ego, float(np.min(s)), float(np.max(s))) if len(s) else np.zeros(3)
-    sigma_r = np.maximum(np.asarray(sig.rail_r, dtype=np.float64), sig.rail_r_gain * noise)
+    sigma_r = np.maximum(np.asarray(sig.rail_r, dtype=np.float64), noise)
     return {"c": T[:, :3, 3].copy(), "R": T[:, :3, :3].copy(), "sigma_r": sigma_r}
 
 
