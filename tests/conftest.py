@@ -10,7 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-REAL_LABELS = Path(__file__).parents[1].parent / "shared/data/osdar23/1_calibration_1.1_labels.json"
+from worker.shared_data import real_labels_path
+
+REAL_LABELS = real_labels_path()
 
 
 @pytest.fixture(scope="session")

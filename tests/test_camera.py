@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,11 +17,11 @@ from renderer.camera import (
     valid_radius,
 )
 from renderer.transforms import invert_T, make_T, quat_to_matrix
+from worker.shared_data import real_labels_path
 
 log = logging.getLogger(__name__)
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-REAL_LABELS = SHARED / "data/osdar23/1_calibration_1.1_labels.json"
+REAL_LABELS = real_labels_path()
 
 
 @pytest.fixture(scope="module")

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from worker.shared_data import real_labels_path
 from worker.synth.scene_mesh import MATERIAL_ID
 
-CALIB = Path("/work/shared/data/osdar23/1_calibration_1.1_labels.json")
+CALIB = real_labels_path()
 pytestmark = [
     pytest.mark.gl,
     pytest.mark.skipif(not CALIB.exists(), reason="real OSDaR23 calibration not available"),

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from worker.osdar import SequenceError, dump_labels, load_labels, parse_labels, validate_openlabel
-from worker.osdar.labels import SCHEMA_PATH, encode_labels, pose_to_matrix
+from worker.osdar.labels import encode_labels, pose_to_matrix
+from worker.shared_data import openlabel_schema_path
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +77,7 @@ def test_raillabel_reads_rewritten_file(real, tmp_path: Path) -> None:
 
 
 def test_schema_validation(real, tmp_path: Path) -> None:
-    if not SCHEMA_PATH.is_file():
+    if not openlabel_schema_path().is_file():
         pytest.skip("OpenLABEL schema not available")
     assert validate_openlabel(real.raw) == []
     rewritten = load_labels(dump_labels(real.raw, tmp_path / "r_labels.json"))

@@ -27,11 +27,11 @@ from typing import Any
 
 import numpy as np
 
+from worker.shared_data import real_labels_path
+
 log = logging.getLogger(__name__)
 
-REAL_LABELS = (
-    Path(__file__).resolve().parents[3] / "shared/data/osdar23/1_calibration_1.1_labels.json"
-)
+REAL_LABELS = real_labels_path()
 
 #: The existing tests that cover each case (collected by case; not duplicated here).
 EXISTING_TESTS: dict[int, list[str]] = {

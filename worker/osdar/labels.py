@@ -21,11 +21,9 @@ from numpy.typing import NDArray
 
 from renderer.transforms import openlabel_pose_to_T
 from worker.osdar.errors import SequenceError, atomic_write_bytes
+from worker.shared_data import openlabel_schema_path
 
 logger = logging.getLogger(__name__)
-
-SHARED_DIR = Path(__file__).resolve().parents[2].parent / "shared"
-SCHEMA_PATH = SHARED_DIR / "data/osdar23/openlabel_v1_schema.json"
 
 
 @dataclass
@@ -346,7 +344,8 @@ def validate_openlabel(raw: dict[str, Any], schema_path: str | Path | None = Non
     raw : dict
         The document.
     schema_path : str or Path, optional
-        Default ``<project>/../shared/data/osdar23/openlabel_v1_schema.json``.
+        Default :func:`worker.shared_data.openlabel_schema_path` (``../shared`` or
+        ``$OSDAR_AR_SHARED``).
 
     Returns
     -------
@@ -354,7 +353,7 @@ def validate_openlabel(raw: dict[str, Any], schema_path: str | Path | None = Non
         One ``"<json path>: <message>"`` per violation; ``[]`` when valid or when the
         schema file is not reachable (logged).
     """
-    schema_path = Path(schema_path) if schema_path is not None else SCHEMA_PATH
+    schema_path = Path(schema_path) if schema_path is not None else openlabel_schema_path()
     if not schema_path.is_file():
         logger.info("OpenLABEL schema %s not found: validation skipped", schema_path)
         return []

@@ -31,6 +31,7 @@ from worker.osdar.labels import frame_intervals
 from worker.osdar.pcd import PointCloud, header_for_fields
 from worker.osdar.writer import SequenceWriter
 from worker.poses import PoseTrack
+from worker.shared_data import real_labels_path
 from worker.synth.ins_sim import HAMBURG, InsErrorModel, simulate_ins
 
 log = logging.getLogger(__name__)
@@ -49,14 +50,9 @@ OCCLUSION_EPS_M = 0.15
 FAR_ORIGIN_OFFSET = np.array([566_000.0, 5_933_000.0, 30.0])
 
 
-def project_root() -> Path:
-    """The folder that holds pyproject.toml (the checkout)."""
-    return Path(__file__).resolve().parents[2]
-
-
 def default_calibration_path() -> Path:
-    """The real OSDaR23 labels file with the real calibration, beside the project."""
-    return project_root().parent / "shared/data/osdar23/1_calibration_1.1_labels.json"
+    """The real OSDaR23 labels file with the real calibration (``worker.shared_data``)."""
+    return real_labels_path()
 
 
 @dataclass
