@@ -22,7 +22,7 @@ from worker.preparation.calibration_point import (
     propose_pole_tops,
 )
 from worker.preparation.config import CalibrationConfig
-from worker.preparation.registration import points_near, register_clouds
+from worker.preparation.registration import points_near, register_clouds, voxel_keep
 from worker.preparation.scene_elements import Pole
 
 VOXEL = 0.1
@@ -131,6 +131,18 @@ def test_points_near_gathers_every_frame_at_full_density(scene: dict) -> None:
     inside = np.linalg.norm(full - centre, axis=1) <= 0.5
     assert len(near) == int(inside.sum())  # the same points as a full registration there
     assert len(near) > int((np.linalg.norm(scene["cloud"].xyz - centre, axis=1) <= 0.5).sum())
+
+
+def test_registration_frame_by_frame_equals_one_voxel_filter(scene: dict) -> None:
+    """The per-frame voxel set keeps exactly what one filter over all the points keeps:
+    the first point (in frame order) of every occupied world voxel."""
+    seq, gt = scene["seq"], scene["gt"]
+    full = register_clouds(seq, gt, voxel_size=0.0, max_range=80.0)
+    keep = voxel_keep(full.xyz, VOXEL)
+    cloud = scene["cloud"]
+    assert len(cloud) == len(keep) < 0.8 * len(full)
+    assert np.array_equal(full.xyz[keep], cloud.xyz)
+    assert np.array_equal(full.frame_idx[keep], cloud.frame_idx)
 
 
 def test_dense_refinement_moves_the_point_onto_the_landmark(scene: dict) -> None:

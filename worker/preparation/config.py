@@ -32,7 +32,7 @@ class RegistrationConfig(_Section):
     voxel_size: float = Field(0.10, gt=0.0, le=2.0)  # m, final cloud: the speed/accuracy knob
     max_range: float = Field(80.0, gt=0.0)  # m from the base origin
     pre_voxel_size: float | None = Field(None, gt=0.0)  # m, pre-registration (default 2.5 x)
-    frame_step: int = Field(2, ge=1)  # every k-th frame for the final cloud (10 Hz overlaps)
+    frame_step: int = Field(4, ge=1)  # every k-th frame for the final cloud (10 Hz overlaps)
     lateral_limit: float | None = Field(30.0, gt=0.0)  # m, |y| in the base frame kept
     pre_frame_step: int = Field(4, ge=1)  # every k-th frame for the pre-registration
     pre_poses: Literal["odometry", "ins"] = "odometry"  # poses of the pre-registration

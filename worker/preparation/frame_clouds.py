@@ -2,9 +2,9 @@
 
 Preparation needs every cloud several times (odometry, pre-registration for the rails,
 final registration with the chosen poses). Reading and parsing the PCDs dominates all but
-KISS-ICP itself, so a :class:`FrameClouds` reads each file once, drops non-finite points
-and points beyond ``max_range``, thins it with a fine voxel filter in the base frame, and
-serves it to every consumer.
+KISS-ICP itself, so a :class:`FrameClouds` reads each file once (``Sequence.pcd`` drops the
+non-finite points), drops points beyond ``max_range``, optionally thins it with a voxel
+filter in the base frame, and serves it to every consumer.
 """
 
 from __future__ import annotations
@@ -62,7 +62,6 @@ class FrameClouds:
             int(f): float(t) for f, t in zip(seq.frame_indices, ts, strict=True) if np.isfinite(t)
         }
         self._cache: dict[int, FrameCloud] = {}
-        self.dropped_nonfinite = 0
 
     @property
     def frames(self) -> list[int]:
@@ -75,20 +74,23 @@ class FrameClouds:
             return hit
         from worker.preparation.registration import voxel_keep
 
+        # Sequence.pcd has dropped (and warned about) non-finite points already.
         cloud = self.seq.pcd(frame, allow_nonfinite=True)
-        p = cloud.xyz
-        finite = np.isfinite(p).all(axis=1)
-        self.dropped_nonfinite += int((~finite).sum())
-        keep = finite & (np.einsum("ij,ij->i", p, p) <= self.max_range**2)
+        f = cloud.fields
+        p = np.stack([np.asarray(f[k], dtype=np.float32) for k in ("x", "y", "z")], axis=1)
         n = len(p)
-        si = cloud.fields.get("sensor_index")
-        si = np.zeros(n, np.uint8) if si is None else np.asarray(si).astype(np.uint8)
-        it = cloud.fields.get("intensity")
-        it = np.zeros(n, np.float32) if it is None else np.asarray(it).astype(np.float32)
-        t_frame = self.frame_times.get(frame, np.nan)
-        p, si, it = p[keep], si[keep], it[keep]
-        k = voxel_keep(p, self.voxel_size)
-        fc = FrameCloud(p[k].astype(np.float32), si[k], it[k], t_frame)
+        si = f.get("sensor_index")
+        si = np.zeros(n, np.uint8) if si is None else np.asarray(si).astype(np.uint8, copy=False)
+        it = f.get("intensity")
+        it = np.zeros(n, np.float32) if it is None else np.asarray(it, dtype=np.float32)
+        r2 = np.einsum("ij,ij->i", p, p)
+        if float(r2.max(initial=0.0)) > self.max_range**2:
+            keep = r2 <= self.max_range**2
+            p, si, it = p[keep], si[keep], it[keep]
+        if self.voxel_size > 0:
+            k = voxel_keep(p.astype(np.float64), self.voxel_size)
+            p, si, it = p[k], si[k], it[k]
+        fc = FrameCloud(p, si, it, self.frame_times.get(frame, np.nan))
         self._cache[frame] = fc
         return fc
 

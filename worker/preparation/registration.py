@@ -97,8 +97,8 @@ def register_clouds(
 
     One point per world voxel is kept: the first in (frame order, point order), i.e. the
     same result as :func:`voxel_keep` on the concatenation, computed frame by frame (a
-    per-frame unique, then open3d's hash set of the voxels already taken) so memory and
-    time stay linear in the number of points.
+    per-frame unique, then a sorted array of the voxels already taken) so memory stays
+    linear in the number of kept points.
 
     Parameters
     ----------
@@ -124,7 +124,8 @@ def register_clouds(
     parts = []
     for f, T in zip(counters, T_all, strict=True):
         p_base, si, inten = _frame_points(seq, f, clouds)
-        mask = np.isfinite(p_base).all(axis=1)
+        # FrameClouds has dropped the non-finite points already
+        mask = np.ones(len(p_base), bool) if clouds is not None else np.isfinite(p_base).all(1)
         if max_range is not None:
             mask &= np.einsum("ij,ij->i", p_base, p_base) <= max_range**2
         if lateral_limit is not None:
@@ -205,55 +206,45 @@ def _frame_points(
     return p_base, si, inten
 
 
-def _mix64(x: NDArray[np.int64]) -> NDArray[np.int64]:
-    """splitmix64's finaliser: a bijection of 64-bit integers that spreads their bits."""
-    z = x.view(np.uint64).copy()
-    z ^= z >> np.uint64(30)
-    z *= np.uint64(0xBF58476D1CE4E5B9)
-    z ^= z >> np.uint64(27)
-    z *= np.uint64(0x94D049BB133111EB)
-    z ^= z >> np.uint64(31)
-    return z.view(np.int64)
-
-
 class _VoxelSet:
-    """World voxels already taken, across frames (open3d's C++ hash set of packed keys)."""
+    """World voxels already taken, across frames: a sorted array of voxel keys.
+
+    Keys are the voxel indices relative to a corner below the whole trajectory, packed into
+    one int64 (21 bits per axis) when the sequence spans fewer than 2^21 voxels per axis,
+    else the three int64 indices viewed as one 24-byte value (both sort and search the
+    same way). Each frame adds its new keys with one ``searchsorted`` and one ``insert``:
+    time linear in the cloud per frame, memory one key per kept point.
+    """
 
     def __init__(self, voxel_size: float, T_all: F64, max_range: float | None) -> None:
         self.voxel = float(voxel_size)
         self.enabled = self.voxel > 0 and len(T_all) > 0
         if not self.enabled:
             return
-        import open3d as o3d
-
         reach = (max_range if max_range is not None else 500.0) + 1.0
         pos = np.asarray(T_all)[:, :3, 3]
         self.lo = np.floor((pos.min(0) - reach) / self.voxel).astype(np.int64)
         span = np.floor((pos.max(0) + reach) / self.voxel).astype(np.int64) - self.lo
         self.packable = bool(np.all(span < (1 << 21)))
-        self.o3c = o3d.core
-        self.set = o3d.core.HashSet(
-            1 << 20, o3d.core.int64, (1,) if self.packable else (3,), o3d.core.Device("CPU:0")
-        )
+        self.taken: NDArray = np.zeros(0, np.int64 if self.packable else np.dtype((np.void, 24)))
+
+    def _keys(self, p_world: F64) -> NDArray:
+        key = np.floor(p_world / self.voxel).astype(np.int64) - self.lo
+        if not self.packable:
+            return np.ascontiguousarray(key).view(np.dtype((np.void, 24))).ravel()
+        # Points beyond the range the keys were sized for (max_range=None) are clipped
+        # onto the border voxels (kept apart from each other only up to that border).
+        key = np.clip(key, 0, (1 << 21) - 1)
+        return (key[:, 0] << 42) | (key[:, 1] << 21) | key[:, 2]
 
     def first_new(self, p_world: F64) -> NDArray[np.int64]:
         """Indices (sorted) of the first point of every voxel not taken by earlier frames."""
         if not self.enabled or len(p_world) == 0:
             return np.arange(len(p_world))
-        key = np.floor(p_world / self.voxel).astype(np.int64) - self.lo
-        inside = np.all((key >= 0) & (key < (1 << 21)), axis=1) if self.packable else None
-        if self.packable and not np.all(inside):
-            # Points beyond the range the keys were sized for (max_range=None): keep them
-            # all rather than fold them onto other voxels.
-            key = np.clip(key, 0, (1 << 21) - 1)
-        if self.packable:
-            packed = (key[:, 0] << 42) | (key[:, 1] << 21) | key[:, 2]
-            uniq, first = np.unique(packed, return_index=True)
-            # Structured keys collide badly in open3d's hash table: insert a bijective
-            # scramble of them instead (same set semantics).
-            tensor = self.o3c.Tensor(_mix64(uniq).reshape(-1, 1))
-        else:
-            uniq, first = np.unique(key, axis=0, return_index=True)
-            tensor = self.o3c.Tensor(np.ascontiguousarray(uniq))
-        _, inserted = self.set.insert(tensor)
-        return np.sort(first[inserted.numpy().astype(bool)])
+        uniq, first = np.unique(self._keys(p_world), return_index=True)
+        at = np.searchsorted(self.taken, uniq)
+        seen = at < len(self.taken)
+        seen[seen] = self.taken[at[seen]] == uniq[seen]
+        new = ~seen
+        self.taken = np.insert(self.taken, at[new], uniq[new])
+        return np.sort(first[new])

@@ -234,18 +234,14 @@ class TrackCoords:
 def track_coords(xyz_world: F64, reference: Centreline, corridor: float) -> TrackCoords:
     """Arc length, lateral offset and height of the points within ``corridor`` (horizontal).
 
-    A KD-tree over the centreline sampled every 0.5 m rejects the far points cheaply; the
-    rest are projected exactly (:meth:`Centreline.project`).
+    Every point is projected with :meth:`Centreline.project_many` (no KD query per point:
+    the registered cloud has millions).
     """
     xyz = np.asarray(xyz_world, dtype=np.float64).reshape(-1, 3)
-    ss = reference.resampled(0.5)
-    tree = cKDTree(reference.point(ss)[:, :2])
-    d, _ = tree.query(xyz[:, :2], distance_upper_bound=corridor + 0.5)
-    idx = np.flatnonzero(np.isfinite(d))
-    pr = reference.project(xyz[idx])
+    pr = reference.project_many(xyz)
     # points beyond the ends project onto the clamped end: keep only those beside the line
-    inside = (np.abs(pr.lateral) <= corridor) & (pr.distance <= corridor)
-    return TrackCoords(idx[inside], pr.s[inside], pr.lateral[inside], pr.vertical[inside])
+    idx = np.flatnonzero((np.abs(pr.lateral) <= corridor) & (pr.distance <= corridor))
+    return TrackCoords(idx, pr.s[idx], pr.lateral[idx], pr.vertical[idx])
 
 
 def _left_normals(reference: Centreline, s: F64) -> F64:
@@ -400,7 +396,8 @@ def _make_plane(
 def _tall_columns(xy: F64, z: F64, cell: float, min_extent: float) -> NDArray[np.bool_]:
     """(n,) mask of points in xy cells whose z extent is at least ``min_extent``."""
     key = np.floor(xy / cell).astype(np.int64)
-    _, inv = np.unique(key, axis=0, return_inverse=True)
+    key -= key.min(axis=0)
+    _, inv = np.unique(key[:, 0] * (int(key[:, 1].max()) + 1) + key[:, 1], return_inverse=True)
     inv = inv.reshape(-1)
     k = inv.max() + 1
     zmin = np.full(k, np.inf)

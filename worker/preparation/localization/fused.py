@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import csc_matrix, identity, lil_matrix
+from scipy.sparse import coo_matrix, csc_matrix, identity
 from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
 
@@ -205,7 +205,7 @@ def residuals(x: F64, pb: Problem) -> F64:
     return np.concatenate(out)
 
 
-def sparsity(pb: Problem) -> lil_matrix:
+def sparsity(pb: Problem) -> csc_matrix:
     """Jacobian sparsity pattern matching :func:`residuals`' row order."""
     n = pb.n
     m_cols = 6 * n + 7
@@ -246,10 +246,9 @@ def sparsity(pb: Problem) -> lil_matrix:
     for j in range(7):
         rows.append((r, [6 * n + j]))
         r += 1
-    S = lil_matrix((r, m_cols), dtype=int)
-    for i, cols in rows:
-        S[i, cols] = 1
-    return S
+    ii = np.concatenate([np.full(len(cols), i) for i, cols in rows])
+    jj = np.concatenate([np.asarray(cols) for _, cols in rows])
+    return coo_matrix((np.ones(len(ii), dtype=int), (ii, jj)), shape=(r, m_cols)).tocsc()
 
 
 def _odometry_weights(
@@ -410,7 +409,7 @@ def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
     a small Levenberg damping keeps the unobservable directions at their priors.
     """
     x = np.zeros(6 * pb.n + 7) if x0 is None else x0.copy()
-    S = csc_matrix(sparsity(pb))
+    S = sparsity(pb)
     groups = _column_groups(pb.n)
     c = pb.sig.huber
     for _ in range(max_iter):
