@@ -21,6 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from worker.malloc_tuning import tune_malloc
 from worker.osdar.sequence import Sequence
 from worker.preparation.artifact import write_artifact
 from worker.preparation.config import PrepareConfig
@@ -58,6 +59,7 @@ def main() -> int:
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    tune_malloc()  # as run_preparation does: both sides measured with the same allocator
     reg = {} if args.voxel_size is None else {"voxel_size": args.voxel_size}
     config = PrepareConfig(strategy=args.strategy).with_overrides(registration=reg)
     seq = Sequence.open(args.sequence)

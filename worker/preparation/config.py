@@ -67,6 +67,7 @@ class PlaneConfig(_Section):
     height_band: tuple[float, float] = (-3.0, 2.0)  # m relative to the rail top kept
     distance_threshold: float = Field(0.06, gt=0.0)  # m, RANSAC inlier distance
     ransac_iterations: int = Field(400, ge=10)
+    ransac_probability: float = Field(0.9999, gt=0.0, lt=1.0)  # stop early when this sure
     max_planes: int = Field(4, ge=1)  # per segment
     min_points: int = Field(200, ge=3)  # inliers of an accepted plane (per component)
     max_tilt_deg: float = Field(12.0, gt=0.0, lt=90.0)  # from horizontal

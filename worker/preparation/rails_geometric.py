@@ -86,22 +86,26 @@ def corridor_mask(
     zgrid[sij[:, 0], sij[:, 1]] = samples[:, 2]
     dist, (ni, nj) = distance_transform_edt(occ, return_indices=True)
     pij = np.floor((pf[:, :2] - lo) / g).astype(np.int64)
-    inb = ok & np.all((pij >= 0) & (pij < np.array(shape)), axis=1)
-    d = np.full(len(p), np.inf)
-    dz = np.full(len(p), np.inf)
-    pi, pj = pij[inb, 0], pij[inb, 1]
-    d[inb] = dist[pi, pj] * g
-    dz[inb] = pf[inb, 2] - zgrid[ni[pi, pj], nj[pi, pj]]
-    near = inb & (d <= reach)
+    inb = ok & (pij[:, 0] >= 0) & (pij[:, 1] >= 0) & (pij[:, 0] < shape[0])
+    inb &= pij[:, 1] < shape[1]
+    cand = np.flatnonzero(inb)
+    pi, pj = pij[cand, 0], pij[cand, 1]
+    d = dist[pi, pj] * g
+    near = d <= reach
+    cand, pi, pj, d = cand[near], pi[near], pj[near], d[near]
+    dz = pf[cand, 2] - zgrid[ni[pi, pj], nj[pi, pj]]
+    in_strip = d <= half_width
+    # beyond the strip: only around the first and last pose (lookahead)
+    q = pf[cand, :2]
     d_end = np.minimum(
-        np.linalg.norm(pf[:, :2] - samples[0, :2], axis=1),
-        np.linalg.norm(pf[:, :2] - samples[-1, :2], axis=1),
+        np.hypot(q[:, 0] - samples[0, 0], q[:, 1] - samples[0, 1]),
+        np.hypot(q[:, 0] - samples[-1, 0], q[:, 1] - samples[-1, 1]),
     )
-    in_strip = near & (d <= half_width)
-    in_ends = near & (d_end <= lookahead)
     slack = 0.02 * np.where(in_strip, 0.0, d)
     z_ok = (dz >= z_band[0] - slack) & (dz <= z_band[1] + slack)
-    return (in_strip | in_ends) & z_ok
+    out = np.zeros(len(p), bool)
+    out[cand[(in_strip | (d_end <= lookahead)) & z_ok]] = True
+    return out
 
 
 def densify_polyline(p: F64, step: float) -> F64:

@@ -333,7 +333,9 @@ def find_planes(
             if len(remaining) < cfg.min_points:
                 break
             pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p[remaining] - origin))
-            model, inl = pc.segment_plane(cfg.distance_threshold, 3, cfg.ransac_iterations)
+            model, inl = pc.segment_plane(
+                cfg.distance_threshold, 3, cfg.ransac_iterations, cfg.ransac_probability
+            )
             inl = np.asarray(inl, dtype=np.int64)
             if len(inl) < cfg.min_points:
                 break
@@ -447,6 +449,23 @@ def find_poles(
             poles.append(pole)
     if poles:  # the boxes reach down to the lowest point under each pole (its foot)
         near = coords.index[np.abs(coords.lateral) <= cfg.corridor]
+        # only the points in the 2 m cells the poles' footprints touch go into the KD-tree
+        cell = 2.0
+        foot = np.array([pl.axis_xy for pl in poles])
+        reach = np.array([pl.radius + 0.1 for pl in poles])
+        cells = np.unique(
+            np.concatenate(
+                [
+                    np.floor((foot + d * reach[:, None]) / cell)
+                    for d in ((-1, -1), (-1, 1), (1, -1), (1, 1))
+                ]
+            ),
+            axis=0,
+        ).astype(np.int64)
+        key = np.floor(xyz_world[near, :2] / cell).astype(np.int64)
+        near = near[
+            np.isin(key[:, 0] * 1_000_003 + key[:, 1], cells[:, 0] * 1_000_003 + cells[:, 1])
+        ]
         tree = cKDTree(xyz_world[near, :2])
         for pl in poles:
             hits = tree.query_ball_point(pl.axis_xy, pl.radius + 0.1)
