@@ -22,7 +22,12 @@ from worker.preparation.calibration_point import (
     propose_pole_tops,
 )
 from worker.preparation.config import CalibrationConfig
-from worker.preparation.registration import points_near, register_clouds, voxel_keep
+from worker.preparation.registration import (
+    points_near,
+    register_clouds,
+    unique_first,
+    voxel_keep,
+)
 from worker.preparation.scene_elements import Pole
 
 VOXEL = 0.1
@@ -143,6 +148,14 @@ def test_registration_frame_by_frame_equals_one_voxel_filter(scene: dict) -> Non
     assert len(cloud) == len(keep) < 0.8 * len(full)
     assert np.array_equal(full.xyz[keep], cloud.xyz)
     assert np.array_equal(full.frame_idx[keep], cloud.frame_idx)
+
+
+@pytest.mark.parametrize("n", [1, 2, 50, 20_000])
+def test_unique_first_equals_numpy_unique(n: int) -> None:
+    keys = np.random.default_rng(n).integers(0, max(2, n // 4), n).astype(np.int64)
+    uniq, first = unique_first(keys)
+    expected = np.unique(keys, return_index=True)
+    assert np.array_equal(uniq, expected[0]) and np.array_equal(first, expected[1])
 
 
 def test_dense_refinement_moves_the_point_onto_the_landmark(scene: dict) -> None:

@@ -77,10 +77,25 @@ def voxel_keep(xyz: F64, voxel_size: float) -> NDArray[np.int64]:
     key -= key.min(axis=0)
     if int(key.max()) < (1 << 21):
         packed = (key[:, 0] << 42) | (key[:, 1] << 21) | key[:, 2]
-        _, first = np.unique(packed, return_index=True)
+        _, first = unique_first(packed)
     else:
         _, first = np.unique(key, axis=0, return_index=True)
     return np.sort(first)
+
+
+def unique_first(keys: NDArray) -> tuple[NDArray, NDArray[np.int64]]:
+    """Sorted unique values of a 1-D array and the index of each one's first occurrence.
+
+    ``np.unique(keys, return_index=True)`` for int64 keys, about 4 times faster: a quicksort
+    instead of the stable sort, then the smallest index of each run of equal keys. Other
+    dtypes go to ``np.unique``.
+    """
+    if keys.dtype != np.int64 or len(keys) == 0:
+        return np.unique(keys, return_index=True)
+    order = np.argsort(keys)
+    s = keys[order]
+    starts = np.flatnonzero(np.concatenate([[True], s[1:] != s[:-1]]))
+    return s[starts], np.minimum.reduceat(order, starts)
 
 
 def register_clouds(
@@ -241,7 +256,7 @@ class _VoxelSet:
         """Indices (sorted) of the first point of every voxel not taken by earlier frames."""
         if not self.enabled or len(p_world) == 0:
             return np.arange(len(p_world))
-        uniq, first = np.unique(self._keys(p_world), return_index=True)
+        uniq, first = unique_first(self._keys(p_world))
         at = np.searchsorted(self.taken, uniq)
         seen = at < len(self.taken)
         seen[seen] = self.taken[at[seen]] == uniq[seen]
