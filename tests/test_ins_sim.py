@@ -285,3 +285,18 @@ def test_accepts_pose_track_input() -> None:
         sim_fn.inspva.latitude, sim_fn.inspva.longitude, sim_fn.inspva.height
     )
     assert np.abs(d).max() < 1e-3
+
+
+def test_slow_drift_is_large_but_smooth() -> None:
+    """The "osdar23" drift: decimetres and tenths of a degree over the run, small per frame."""
+    from worker.synth.ins_sim import _smooth_drift
+
+    t = np.arange(0.0, 200.0, 0.1)
+    sigma = np.array([0.5, 0.5, 0.15, 0.5])
+    d = _smooth_drift(np.random.default_rng(0), t, sigma, 10.0)
+    assert np.allclose(d.std(axis=0), sigma, rtol=0.25)
+    step = np.abs(np.diff(d, axis=0)).max(axis=0)
+    assert np.all(step < 0.05 * sigma * 2 * np.pi)  # period >= 6 s: < 1/10 of the swing per frame
+    model = InsErrorModel.profile("osdar23")
+    assert model.heading_drift_deg > 0 and model.position_drift_m[0] > 0
+    assert InsErrorModel.profile("paper").heading_drift_deg == 0.0  # other profiles unchanged

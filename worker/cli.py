@@ -54,7 +54,11 @@ def _add_synth(sub: argparse._SubParsersAction) -> None:
         default=1.0,
         help="fraction of the real lidars' rays (1.0 = OSDaR23 point counts)",
     )
-    p.add_argument("--ins-profile", default="paper", help="INS error profile: paper, good, perfect")
+    p.add_argument(
+        "--ins-profile",
+        default="paper",
+        help="INS error profile: paper, good, perfect, hard, osdar23",
+    )
     p.add_argument(
         "--ins",
         action="append",
