@@ -296,7 +296,8 @@ def test_slow_drift_is_large_but_smooth() -> None:
     d = _smooth_drift(np.random.default_rng(0), t, sigma, 10.0)
     assert np.allclose(d.std(axis=0), sigma, rtol=0.25)
     step = np.abs(np.diff(d, axis=0)).max(axis=0)
-    assert np.all(step < 0.05 * sigma * 2 * np.pi)  # period >= 6 s: < 1/10 of the swing per frame
+    # periods of 6-17 s: at most ~0.17 sigma per 0.1 s frame (white noise would step ~1.4)
+    assert np.all(step < 0.3 * sigma)
     model = InsErrorModel.profile("osdar23")
     assert model.heading_drift_deg > 0 and model.position_drift_m[0] > 0
     assert InsErrorModel.profile("paper").heading_drift_deg == 0.0  # other profiles unchanged

@@ -12,6 +12,7 @@ the reaper on a stale row, and the alembic stdout fix.
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import subprocess
 import sys
@@ -35,7 +36,8 @@ def _scenario(name: str, tmp_path: Path, quick: bool = True, **kw: Any) -> dict[
             pytest.fail(str(exc))
         pytest.skip(str(exc))
     common.report(name, {k: v for k, v in figures.items() if k not in ("records", "outcomes")})
-    assert mod.ok(figures), figures
+    # the figures as JSON: pytest would cut a dict short, and they are the diagnosis
+    assert mod.ok(figures), json.dumps(figures, default=str)
     return figures
 
 

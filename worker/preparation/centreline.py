@@ -207,9 +207,8 @@ class Centreline:
         kappa = np.gradient(heading, ss) if len(ss) > 2 else np.zeros(len(ss))  # 1/m, left +
         key = np.floor(p[:, :2] / cell).astype(np.int64)
         key -= key.min(axis=0)
-        packed = key[:, 0] * (int(key[:, 1].max()) + 1) + key[:, 1]
-        uniq, inv = np.unique(packed, return_inverse=True)
         width = int(key[:, 1].max()) + 1
+        uniq, inv = np.unique(key[:, 0] * width + key[:, 1], return_inverse=True)
         lo = np.floor(p[:, :2].min(axis=0) / cell)
         centres = (np.stack([uniq // width, uniq % width], axis=1) + lo + 0.5) * cell
         j = tree.query(centres)[1][inv.reshape(-1)]
