@@ -25,7 +25,7 @@ _M_TRIM_THRESHOLD = -1
 _M_TOP_PAD = -2
 _M_MMAP_THRESHOLD = -3
 
-MMAP_THRESHOLD = 32 * 1024 * 1024  # bytes: glibc's maximum on 64-bit
+MMAP_THRESHOLD = 32 * 1024 * 1024  # bytes: where glibc's own adaptive threshold tops out (64-bit)
 TRIM_THRESHOLD = 512 * 1024 * 1024  # bytes of free heap kept before trimming
 TOP_PAD = 64 * 1024 * 1024  # bytes added whenever the heap grows
 
