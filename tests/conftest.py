@@ -10,9 +10,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from worker.shared_data import real_labels_path
+from worker.shared_data import SHARED_ENV, shared_dir
+from worker.shared_data import real_labels_path as _shared_labels
 
-REAL_LABELS = real_labels_path()
+REAL_LABELS = _shared_labels()
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Most tests generate synthetic sequences from the real calibration: without the
+    shared folder they would fail by the hundred, so stop at once and say what to do."""
+    if not REAL_LABELS.is_file():
+        pytest.exit(
+            f"the real OSDaR23 labels file {REAL_LABELS} is missing: the tests need the "
+            f"shared folder ({shared_dir()}) beside the checkout, or {SHARED_ENV}=/path/to/shared",
+            returncode=2,
+        )
 
 
 @pytest.fixture(scope="session")
