@@ -7,7 +7,6 @@ distortion, CameraModel.unproject) intersected with the sphere.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,10 +17,9 @@ from renderer.lighting import Lighting
 from renderer.mesh import ObjectMesh, ProxyMesh
 from renderer.object_render import ObjectRender, ObjectRenderer
 from renderer.transforms import invert_T, make_T, quat_to_matrix, transform_points
+from worker.shared_data import real_labels_path
 
-REAL_LABELS = (
-    Path(__file__).resolve().parents[2] / "shared/data/osdar23/1_calibration_1.1_labels.json"
-)
+REAL_LABELS = real_labels_path()
 SCALE = 0.25
 FAR = np.array([5.9e6, 5.9e6, 120.0])  # UTM-like offset for the far-origin case
 
