@@ -258,6 +258,22 @@ def test_a_stage_error_fails_the_job_with_a_readable_reason(
     assert run_job_inline(job2, settings=dev) == JobState.SUCCEEDED
 
 
+def test_a_termination_inside_a_stage_leaves_the_job_to_redelivery(
+    tmp_path: Path, seq_folder: Path
+) -> None:
+    """The pool's SIGTERM surfacing as an ImportError (seen when Redis restarted mid-import):
+    the process exits and the job stays RUNNING for redelivery / the reaper, not FAILED."""
+    from worker.jobs.runner import run_job_inline
+
+    settings = _migrated(_settings(tmp_path))
+    owner, seq_id = _owner_and_sequence(settings, seq_folder)
+    job_id = _new_job(settings, owner, seq_id, terminated_in="fetch")
+    with pytest.raises(SystemExit):
+        run_job_inline(job_id, settings=settings)
+    job = _job(settings, job_id)
+    assert job.state == JobState.RUNNING and job.error is None
+
+
 # ---------------------------------------------------------------------------- (f) config
 def test_celery_config_follows_the_reliability_rules(tmp_path: Path) -> None:
     from worker.jobs.celery_app import make_celery

@@ -189,7 +189,8 @@ def _test_hook(run: JobRun, stage: str) -> None:
     """Test-only spec flags (``spec["_test"]``), honoured only in environment "test".
 
     ``crash_in``: the worker process exits at once in that stage (a poison input);
-    ``fail_in``: the stage raises; ``sleep_in``: {stage: seconds} before the stage's work.
+    ``fail_in``: the stage raises; ``terminated_in``: the stage is hit by the pool's
+    termination inside an import; ``sleep_in``: {stage: seconds} before the stage's work.
     """
     if run.settings.environment != "test":
         return
@@ -201,6 +202,12 @@ def _test_hook(run: JobRun, stage: str) -> None:
         os._exit(TEST_CRASH_EXIT_CODE)
     if hooks.get("fail_in") == stage:
         raise RuntimeError(f"test hook: failure in {stage}")
+    if hooks.get("terminated_in") == stage:
+        # what billiard's SIGTERM handler does to a task caught inside an import
+        try:
+            raise SystemExit(-241)
+        except SystemExit as exc:
+            raise ImportError("initialization failed") from exc
     delay = (hooks.get("sleep_in") or {}).get(stage)
     if delay:
         time.sleep(float(delay))
@@ -244,11 +251,32 @@ def _stage(run: JobRun, name: str, *, count_delivery: bool = True) -> Iterator[N
         log.info("job %s cancelled in stage %s", run.job_id, name)
         raise
     except Exception as exc:
+        stop = _termination(exc)
+        if stop is not None:
+            # Not the job's fault: the pool is terminating this process (Celery does so
+            # when the broker connection drops under late acks) and the exit surfaced as
+            # another error, e.g. an ImportError from a half-run import. Failing the job
+            # would be wrong, and this process may hold a half-initialised module: let it
+            # exit; the message is redelivered or the reaper re-queues the job.
+            log.warning("job %s: process terminated in stage %s", run.job_id, name)
+            raise stop from exc
         reason = describe_error(name, exc)
         log.exception("job %s attempt %d failed in %s", run.job_id, run.attempt, name)
         state.mark_failed(run.job_id, reason, settings=s, attempt=run.attempt)
         cleanup_attempt(run)
         raise JobFailed(reason) from exc
+
+
+def _termination(exc: BaseException) -> BaseException | None:
+    """The SystemExit or KeyboardInterrupt behind ``exc`` (its causes and contexts), if any."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, (SystemExit, KeyboardInterrupt)):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
 
 
 # ---------------------------------------------------------------------------- start
