@@ -274,6 +274,51 @@ def test_a_termination_inside_a_stage_leaves_the_job_to_redelivery(
     assert job.state == JobState.RUNNING and job.error is None
 
 
+def test_finish_killed_while_moving_chunk_files_runs_again(
+    tmp_path: Path, seq_folder: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """finish MOVES the chunks' files into the output: killed half-way and delivered again,
+    it fetches the chunks from the store instead of trusting the half-emptied local ones
+    (the sigkill scenario caught a FAILED 'FileNotFoundError' here)."""
+    import os
+
+    from worker.jobs import runner
+
+    settings = _migrated(_settings(tmp_path))
+    owner, seq_id = _owner_and_sequence(settings, seq_folder)
+    job_id = _new_job(settings, owner, seq_id)
+    kw: dict[str, Any] = {"attempt": runner.start_job(job_id, settings=settings)}
+    kw["settings"] = settings
+    runner.fetch_sequence(job_id, **kw)
+    runner.prepare_for_job(job_id, **kw)
+    plan = runner.plan_chunks(job_id, **kw)
+    chunks = [runner.augment_chunk(job_id, i, frames, **kw) for i, frames in enumerate(plan)]
+    real_replace, moved = os.replace, []
+    chunk_root = runner.JobRun(job_id, kw["attempt"], settings).workdir / "chunks"
+
+    def replace_then_die(src: Any, dst: Any) -> None:
+        real_replace(src, dst)
+        if Path(src).is_relative_to(chunk_root):
+            moved.append(dst)
+            raise SystemExit(-9)  # the process dies right after moving its first chunk file
+
+    monkeypatch.setattr(os, "replace", replace_then_die)
+    with pytest.raises(SystemExit):
+        runner.finish_job(job_id, chunks, **kw)
+    monkeypatch.setattr(os, "replace", real_replace)
+    assert len(moved) == 1
+    again = runner.finish_job(job_id, chunks, **kw)  # the redelivery
+    assert _job(settings, job_id).error is None
+    folder = runner.output_sequence(runner.JobRun(job_id, kw["attempt"], settings))
+
+    def contents() -> dict[str, bytes]:
+        return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*.png")}
+
+    after_kill = contents()
+    assert runner.finish_job(job_id, chunks, **kw) == again  # as a finish never killed
+    assert contents() == after_kill  # every augmented frame, none replaced by its input
+
+
 # ---------------------------------------------------------------------------- (f) config
 def test_celery_config_follows_the_reliability_rules(tmp_path: Path) -> None:
     from worker.jobs.celery_app import make_celery

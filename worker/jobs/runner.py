@@ -465,6 +465,11 @@ def _chunk_dir(run: JobRun, index: int) -> Path:
     return run.workdir / "chunks" / f"{index:04d}"
 
 
+def _chunk_done(run: JobRun, index: int) -> Path:
+    """Marker: the chunk's local folder is whole (written here, or fetched whole)."""
+    return run.workdir / "chunks" / f"{index:04d}.done"
+
+
 def augment_chunk(
     job_id: str,
     index: int,
@@ -506,7 +511,7 @@ def augment_chunk(
         run.store.put_file(files_key, tar_path)
         tar_path.unlink(missing_ok=True)
         run.store.put_bytes(records_key, pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL))
-        (out.parent / f"{index:04d}.done").write_text("ok")
+        _chunk_done(run, index).write_text("ok")
         return {"index": index, "frames": list(frames), "files": files_key, "records": records_key}
 
 
@@ -521,7 +526,7 @@ def _chunk_results(run: JobRun, chunks: list[dict[str, Any]]) -> list[Any]:
     out = []
     for c in sorted(chunks, key=lambda c: c["index"]):
         folder = _chunk_dir(run, c["index"])
-        if not (folder.parent / f"{c['index']:04d}.done").is_file():
+        if not _chunk_done(run, c["index"]).is_file():
             shutil.rmtree(folder, ignore_errors=True)
             folder.parent.mkdir(parents=True, exist_ok=True)
             tar_path = folder.with_suffix(".tar")
@@ -542,6 +547,11 @@ def _assemble_output(run: JobRun, chunks: list[dict[str, Any]]) -> tuple[Path, d
     out.parent.mkdir(parents=True)
     plan = _plan(run, mod)
     results = _chunk_results(run, chunks)
+    # finish_augmentation MOVES the chunks' files into the output: from here on the local
+    # chunk folders are no longer whole, so a finish killed half-way and run again must
+    # fetch them from the store instead of trusting them.
+    for c in chunks:
+        _chunk_done(run, c["index"]).unlink(missing_ok=True)
     metrics = mod.finish_augmentation(plan, results, out, overwrite=True)
     shutil.rmtree(run.workdir / "chunks", ignore_errors=True)
     (out.parent / ".complete").write_text("ok")
