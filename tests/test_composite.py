@@ -21,8 +21,6 @@ from renderer.lighting import (
 from renderer.object_render import ObjectRender
 from renderer.transforms import pose_to_T
 
-FIRE_SITE = Path("/tmp/seqs/fire_site")
-
 
 def square_render(
     roi=(40, 30, 80, 70), value: float = 1.0, shadow: bool = False, distance: float = 30.0
@@ -148,13 +146,25 @@ def test_sun_position():
     assert sun_dir_enu(lat, lon, t)[0] > 0.5
 
 
-@pytest.mark.skipif(not FIRE_SITE.is_dir(), reason="synthetic fire_site sequence not generated")
-def test_estimate_lighting_on_a_synthetic_frame():
+@pytest.fixture(scope="module")
+def fire_site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 2-frame synthetic fire_site sequence (small images, sparse lidar)."""
+    from worker.synth.generator import SynthConfig, generate
+
+    folder = tmp_path_factory.mktemp("seq") / "fire_site"
+    generate(folder, SynthConfig(scene="fire_site", frames=2, scale=0.25, lidar_density=0.1))
+    return folder
+
+
+@pytest.mark.gl
+def test_estimate_lighting_on_a_synthetic_frame(fire_site: Path):
     """The synthetic renderer's light (camera_sim.py) is known: sky ambient 0.85 x
     (0.42, 0.47, 0.56) on an upward surface, sun 0.85 x (0.95, 0.89, 0.80)."""
     from renderer.camera import load_cameras
     from worker.osdar.sequence import Sequence
     from worker.poses import PoseTrack
+
+    FIRE_SITE = fire_site
 
     seq = Sequence.open(FIRE_SITE)
     cams = load_cameras(seq.labels.raw)
