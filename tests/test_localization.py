@@ -223,8 +223,13 @@ def test_fused_against_rails(results: dict, seqs: dict, seq: str) -> None:
     r = _errors(results[seq]["rails"].track, seqs[seq])
     assert f["t_mean"] <= r["t_mean"] + 0.005
     assert f["t_max"] < r["t_max"]
-    assert f["r_mean"] < 0.75 * r["r_mean"]
-    assert f["rel_r"] < r["rel_r"]
+    # The rails here are the TRUE centreline, exact in roll; fused takes the cant as 0.4 deg
+    # (a fitted one wanders) and its roll from the INS and odometry: within 0.05 deg.
+    assert f["r_mean"] < r["r_mean"] + 0.05
+    if seq == "fire_site":
+        assert f["rel_r"] < r["rel_r"]
+    else:  # a straight: the exact centreline's frame is the whole rotation but body motion
+        assert f["rel_r"] < r["rel_r"] + 0.01
     if seq == "fire_site":  # odometry informs the motion (not on the degenerate straight)
         assert f["rel_t"] < 0.6 * r["rel_t"]
 
@@ -239,7 +244,7 @@ def test_fused_best_on_gnss_jump(results: dict, seqs: dict) -> None:
 
 def test_error_bounds(results: dict, seqs: dict) -> None:
     fire = {s: _errors(results["fire_site"][s].track, seqs["fire_site"]) for s in MOVING}
-    assert fire["fused"]["t_mean"] < 0.5 and fire["fused"]["r_mean"] < 0.03
+    assert fire["fused"]["t_mean"] < 0.5 and fire["fused"]["r_mean"] < 0.06
     assert fire["fused"]["rel_t"] < 0.02 and fire["fused"]["rel_r"] < 0.02
     assert fire["odometry"]["rel_t"] < 0.03  # KISS-ICP itself is sane on structure
     still = _errors(results["stationary"]["fused"].track, seqs["stationary"])
@@ -274,12 +279,12 @@ def test_orientation_noise_sees_knot_noise_not_a_smooth_curve() -> None:
 
 
 def test_fused_rail_sigmas_follow_the_centrelines_noise(results: dict, seqs: dict) -> None:
-    """True centreline: the 0.05 deg floor; knots with 1 cm of noise: tenths of a degree on
-    pitch and heading, so the noisy tangent no longer drives the rotations."""
+    """True centreline: the floors (roll 0.4 deg: a cant from two rail heights; pitch and
+    heading 0.05 deg); knots with 1 cm of noise: tenths of a degree on pitch and heading, so
+    the noisy tangent no longer drives the rotations."""
     floor = results["fire_site"]["fused"].health.metrics
-    assert all(
-        abs(floor[f"fused_rail_sigma_{a}_deg"] - 0.05) < 1e-9 for a in ("roll", "pitch", "heading")
-    ), floor
+    assert abs(floor["fused_rail_sigma_roll_deg"] - 0.4) < 1e-9, floor
+    assert all(abs(floor[f"fused_rail_sigma_{a}_deg"] - 0.05) < 1e-9 for a in ("pitch", "heading"))
     inp = _input(seqs["fire_site"])
     ego = inp.ego
     s = np.arange(0.0, ego.length, 2.0)
@@ -287,4 +292,63 @@ def test_fused_rail_sigmas_follow_the_centrelines_noise(results: dict, seqs: dic
     inp.ego = Centreline(noisy, ego.roll(s), ego=True)
     m = run_strategy("fused", inp).health.metrics
     assert m["fused_rail_sigma_pitch_deg"] > 0.1 and m["fused_rail_sigma_heading_deg"] > 0.1, m
-    assert m["fused_rail_sigma_roll_deg"] < 0.06, m
+    assert abs(m["fused_rail_sigma_roll_deg"] - 0.4) < 1e-9, m
+
+
+def test_ins_wander_measures_a_slow_heading_drift() -> None:
+    """An INS whose heading drifts at 0.2 deg/s against the odometry: 0.2 deg over 1 s on
+    heading, ~0 on roll and pitch; a 3 m GNSS jump in one pair does not count."""
+    from worker.preparation.localization.ins_wander import ins_wander
+
+    n, dt = 100, 0.1
+    t = np.arange(n) * dt
+    T_odo = np.tile(np.eye(4), (n, 1, 1))
+    T_odo[:, 0, 3] = 10.0 * t
+    T_ins = T_odo.copy()
+    heading = np.radians(0.2 * t)
+    T_ins[:, :3, :3] = Rotation.from_rotvec(np.outer(heading, [0.0, 0.0, 1.0])).as_matrix()
+    T_ins[50:, 1, 3] += 0.05 * np.sin(t[50:])  # slow lateral wander, cm
+    T_ins[70, 0, 3] += 3.0
+    w = ins_wander(T_ins, T_odo, t, np.ones(n, dtype=bool), lag_s=1.0)
+    assert w is not None and w.pairs == 90 and abs(w.lag_s - 1.0) < 1e-9
+    assert abs(np.degrees(w.rotation_rad[2]) - 0.2) < 0.01, np.degrees(w.rotation_rad)
+    assert np.all(np.degrees(w.rotation_rad[:2]) < 1e-6)
+    assert w.position_m[0] < 1e-6  # the jump touches 2 of 90 pairs
+    assert w.position_m[1] < 0.05
+    assert ins_wander(T_ins[:4], T_odo[:4], t[:4], np.ones(4, dtype=bool), 1.0) is None
+
+
+@pytest.fixture(scope="module")
+def wandering(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """fire_site with the "osdar23" INS (slow drift of decimetres and tenths of a degree)."""
+    folder = _generate(
+        tmp_path_factory.mktemp("wander"), "wander", scene="fire_site", ins_profile="osdar23"
+    )
+    inp = _input(folder)
+    return {"folder": folder, **{s: run_strategy(s, inp) for s in ("ins", "odometry", "fused")}}
+
+
+def _rel_rotation_deg(track: PoseTrack, folder: Path, lag: int) -> float:
+    """RMS (deg) of the rotation error of the motion over ``lag`` frames."""
+    gt = PoseTrack.from_csv(folder / "ground_truth/poses.csv").interpolate(track.timestamps)
+    T = track.T
+    a = np.linalg.inv(T[:-lag]) @ T[lag:]
+    b = np.linalg.inv(gt[:-lag]) @ gt[lag:]
+    E = np.swapaxes(b[:, :3, :3], 1, 2) @ a[:, :3, :3]
+    return float(np.degrees(np.sqrt(np.mean(Rotation.from_matrix(E).magnitude() ** 2))))
+
+
+def test_fused_follows_the_odometry_not_a_wandering_ins(wandering: dict, results: dict) -> None:
+    """With the INS attitude wandering, fused measures the wander (heading tenths of a
+    degree per second against ~0.02 for the "paper" INS), frees the INS's slow part, and
+    its rotation over 1 s stays at the odometry's level, well below the INS's."""
+    m = wandering["fused"].health.metrics
+    assert m["fused_ins_wander_heading_deg"] > 0.1, m
+    paper = results["fire_site"]["fused"].health.metrics
+    assert paper["fused_ins_wander_heading_deg"] < 0.05, paper
+    folder = wandering["folder"]
+    err = {
+        s: _rel_rotation_deg(wandering[s].track, folder, 10) for s in ("ins", "odometry", "fused")
+    }
+    assert err["fused"] < 0.5 * err["ins"], err
+    assert err["fused"] < 1.5 * err["odometry"], err

@@ -58,6 +58,7 @@ from worker.preparation.localization.common import (
     poses_from,
     remove_jumps,
 )
+from worker.preparation.localization.ins_wander import ins_wander
 from worker.preparation.localization.odometry import (
     degenerate_frames,
     is_degenerate,
@@ -77,8 +78,8 @@ DEG = np.pi / 180.0
 class Sigmas:
     """Standard deviations of the residual blocks (m, rad, s)."""
 
-    odo_t: float = 0.015
-    odo_r: float = 0.03 * DEG
+    odo_t: float = 0.006
+    odo_r: float = 0.01 * DEG
     odo_t_degenerate: float = 2.0
     #: INS positions drift by centimetres to decimetres over seconds (GNSS multipath, the
     #: filter's own random walk): weighted as 0.1 m so that the odometry carries the
@@ -96,13 +97,33 @@ class Sigmas:
     #: orientation on average (through the positions on the centreline) while the odometry
     #: and INS attitude carry its changes. With the floor alone (0.05 deg) the fused jitter
     #: on rgb_highres_center was 1.5 px.
-    rail_r: tuple[float, float, float] = (0.05 * DEG, 0.05 * DEG, 0.05 * DEG)
+    #: Roll's floor is larger: the cant comes from two rail-head heights 1.435 m apart, and
+    #: 1 cm of height error there is 0.4 deg (on the synthetic scenes the fitted cant
+    #: wandered by 0.28 deg; with the 0.05 deg floor the fused roll followed it once the INS
+    #: attitude's slow part was freed, and the C2 RPE rose by 0.4-0.9 px).
+    rail_r: tuple[float, float, float] = (0.4 * DEG, 0.05 * DEG, 0.05 * DEG)
     acc: float = 0.02
     rot_acc: float = 0.02 * DEG
     lever: float = 1.0
     boresight: float = 2.0 * DEG
     latency: float = 0.05
     huber: float = 3.0
+    #: The INS's slow errors (its filter wandering by decimetres and tenths of a degree
+    #: over seconds, as the real OSDaR23 INS does): an attitude bias (world rotation
+    #: vector) and a position bias (world, m), linear between knots ``bias_knot_s`` apart,
+    #: with a weak prior on their size and one on their change between knots. The change's
+    #: sigma is the INS's wander against the odometry over one knot spacing, measured per
+    #: sequence (:mod:`~worker.preparation.localization.ins_wander`), within the floor and
+    #: cap below; the defaults when it cannot be measured. A good INS thus keeps carrying
+    #: the slow attitude, a wandering one only the frame-to-frame motion. With a fixed
+    #: sigma the wandering INS attitude (sigma 0.03 deg, the tightest absolute rotation
+    #: term) dragged the poses with it (23 px on C2), or the rails' noisier orientation
+    #: replaced a good INS's (2.4 -> 3.0 px).
+    bias_knot_s: float = 1.0
+    att_bias: float = 1.0 * DEG
+    pos_bias: float = 2.0
+    att_bias_step: tuple[float, float, float] = (0.01 * DEG, 0.1 * DEG, 1.0 * DEG)
+    pos_bias_step: tuple[float, float, float] = (0.02, 0.1, 1.0)  # floor, default, cap
 
 
 @dataclass
@@ -125,6 +146,11 @@ class Problem:
     n: int
     lever_sigma: F64  # (3,) prior sigmas of the lever arm (x tight unless observable)
     bore_sigma: float  # prior sigma of the boresight (tight without rails)
+    knot_i: NDArray[np.int64]  # (m,) left bias knot of each INS record
+    knot_a: F64  # (m,) interpolation weight of the right knot
+    n_knots: int  # number of INS bias knots (>= 1)
+    bias_sigma: F64  # (6,) prior sigmas of a knot's size (attitude rad, position m)
+    bias_step_sigma: F64  # (6,) prior sigmas of its change between knots
 
 
 def _rotvec_rates(R: F64, times: F64) -> F64:
@@ -152,6 +178,11 @@ def _linearise_rails(ego, p_world: F64, R_hint: F64, sig: Sigmas) -> dict:
     return {"c": T[:, :3, 3].copy(), "R": T[:, :3, :3].copy(), "sigma_r": sigma_r}
 
 
+def _n_params(n: int, n_knots: int) -> int:
+    """Length of the parameter vector: poses, misalignment, INS bias knots."""
+    return 6 * n + 7 + 6 * n_knots
+
+
 def _unpack(x: F64, pb: Problem) -> tuple[F64, F64, F64, F64, float]:
     n = pb.n
     xp = x[: 6 * n].reshape(n, 6)
@@ -159,6 +190,34 @@ def _unpack(x: F64, pb: Problem) -> tuple[F64, F64, F64, F64, float]:
     p = pb.p0 + xp[:, 3:]
     lever, bore, lat = x[6 * n : 6 * n + 3], x[6 * n + 3 : 6 * n + 6], float(x[6 * n + 6])
     return R, p, lever, bore, lat
+
+
+def _bias_knots_of(x: F64, pb: Problem) -> F64:
+    """(n_knots, 6) INS bias knots: attitude (world rotation vector, rad), position (m)."""
+    return x[6 * pb.n + 7 :].reshape(pb.n_knots, 6)
+
+
+def _bias_at_records(x: F64, pb: Problem) -> F64:
+    """(m, 6) INS bias at each INS record, linear between its knots."""
+    knots = _bias_knots_of(x, pb)
+    b = (1.0 - pb.knot_a)[:, None] * knots[pb.knot_i]
+    if pb.n_knots > 1:
+        b = b + pb.knot_a[:, None] * knots[np.minimum(pb.knot_i + 1, pb.n_knots - 1)]
+    return b
+
+
+def _bias_knots(times: F64, k: NDArray[np.int64], knot_s: float) -> tuple:
+    """Knots ``knot_s`` apart (at least 2 over the span, or 1 for a single record) and, per
+    INS record at frames ``k``, its left knot and the right knot's linear weight."""
+    t = times[k] if len(k) else times[:1]
+    t0, t1 = float(np.min(t)), float(np.max(t))
+    span = t1 - t0
+    if span <= 0.0:
+        return np.zeros(len(k), dtype=np.int64), np.zeros(len(k)), 1
+    n_knots = max(2, int(np.ceil(span / knot_s)) + 1)
+    u = (times[k] - t0) / span * (n_knots - 1)
+    i = np.clip(np.floor(u).astype(np.int64), 0, n_knots - 2)
+    return i, u - i, n_knots
 
 
 def residuals(x: F64, pb: Problem) -> F64:
@@ -178,10 +237,15 @@ def residuals(x: F64, pb: Problem) -> F64:
         # The latency is not applied to positions: it moves them along the track only,
         # exactly like the along-track lever arm and the INS's own along-track error, none
         # of which anything here observes (see the module docstring).
-        pred = p[k] + R[k] @ lever
+        # INS = truth + slow bias: position p + b(t), attitude Exp(beta(t)) @ R.
+        bias = _bias_at_records(x, pb)
+        beta = bias[:, :3]
+        pred = p[k] + R[k] @ lever + bias[:, 3:]
         out.append(((pred - pb.p_ins) / sig.ins_p).ravel())
         R_meas = Rotation.from_rotvec(pb.w_ins * lat).as_matrix() @ pb.R_ins
-        R_pred = R[k] @ Rotation.from_rotvec(bore).as_matrix()
+        R_pred = (
+            Rotation.from_rotvec(beta).as_matrix() @ R[k] @ Rotation.from_rotvec(bore).as_matrix()
+        )
         err = Rotation.from_matrix(np.swapaxes(R_meas, 1, 2) @ R_pred).as_rotvec()
         out.append((err / sig.ins_r).ravel())
     # rails
@@ -202,18 +266,29 @@ def residuals(x: F64, pb: Problem) -> F64:
     out.append(lever / pb.lever_sigma)
     out.append(bore / pb.bore_sigma)
     out.append(np.array([lat / sig.latency]))
+    knots = _bias_knots_of(x, pb)
+    out.append((knots / pb.bias_sigma).ravel())
+    out.append((np.diff(knots, axis=0) / pb.bias_step_sigma).ravel())
     return np.concatenate(out)
 
 
 def sparsity(pb: Problem) -> csc_matrix:
     """Jacobian sparsity pattern matching :func:`residuals`' row order."""
     n = pb.n
-    m_cols = 6 * n + 7
+    m_cols = _n_params(n, pb.n_knots)
     rows: list[tuple[int, list[int]]] = []
     mis = list(range(6 * n, 6 * n + 7))
 
     def frame_cols(k: int) -> list[int]:
         return list(range(6 * k, 6 * k + 6))
+
+    def knot_cols(j: int) -> list[int]:
+        return list(range(6 * n + 7 + 6 * j, 6 * n + 13 + 6 * j))
+
+    def bias_cols(i: int) -> list[int]:
+        """The bias knots an INS record (index i into ins_k) depends on."""
+        j = int(pb.knot_i[i])
+        return knot_cols(j) + (knot_cols(j + 1) if j + 1 < pb.n_knots else [])
 
     r = 0
     for block in range(2):  # odometry translation, rotation
@@ -224,9 +299,9 @@ def sparsity(pb: Problem) -> csc_matrix:
                 r += 1
     for block in range(2):  # INS position, attitude
         del block
-        for k in pb.ins_k:
+        for i, k in enumerate(pb.ins_k):
             for _ in range(3):
-                rows.append((r, frame_cols(int(k)) + mis))
+                rows.append((r, frame_cols(int(k)) + mis + bias_cols(i)))
                 r += 1
     if pb.rail is not None:
         for _ in range(2):
@@ -246,6 +321,14 @@ def sparsity(pb: Problem) -> csc_matrix:
     for j in range(7):
         rows.append((r, [6 * n + j]))
         r += 1
+    for j in range(pb.n_knots):  # bias size
+        for c in knot_cols(j):
+            rows.append((r, [c]))
+            r += 1
+    for j in range(pb.n_knots - 1):  # bias change between knots
+        for c in range(6):
+            rows.append((r, [knot_cols(j)[c], knot_cols(j + 1)[c]]))
+            r += 1
     ii = np.concatenate([np.full(len(cols), i) for i, cols in rows])
     jj = np.concatenate([np.asarray(cols) for _, cols in rows])
     return coo_matrix((np.ones(len(ii), dtype=int), (ii, jj)), shape=(r, m_cols)).tocsc()
@@ -313,7 +396,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     else:
         D = np.zeros((0, 4, 4))
     d_t, d_R = D[:, :3, 3].copy(), D[:, :3, :3].copy()
-    w_t, w_r, _ = (
+    w_t, w_r, degenerate = (
         _odometry_weights(inp, ins, d_t, health, sig)
         if n >= 2
         else (
@@ -338,6 +421,14 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     k = np.flatnonzero(ins.covered).astype(np.int64)
     if len(k) == 0:
         k = np.arange(n, dtype=np.int64)  # extrapolated INS is all there is
+    knot_i, knot_a, n_knots = _bias_knots(
+        np.asarray(inp.times, dtype=np.float64), k, sig.bias_knot_s
+    )
+    bias_sigma = np.array([sig.att_bias] * 3 + [sig.pos_bias] * 3)
+    bias_step = _bias_step_sigmas(inp, ins, p_ins_all, degenerate, health, sig)
+    if rail is None:
+        # Nothing else fixes the absolute attitude: the INS's is taken as is.
+        bias_sigma[:3] = 0.005 * DEG
     return Problem(
         R0=R0,
         p0=p0,
@@ -355,7 +446,53 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         n=n,
         lever_sigma=lever_sigma,
         bore_sigma=bore_sigma,
+        knot_i=knot_i,
+        knot_a=knot_a,
+        n_knots=n_knots,
+        bias_sigma=bias_sigma,
+        bias_step_sigma=bias_step,
     )
+
+
+def _bias_step_sigmas(
+    inp: LocalizationInput,
+    ins: InsFrames,
+    p_ins: F64,
+    degenerate: bool,
+    health: Health,
+    sig: Sigmas,
+) -> F64:
+    """(6,) sigmas of the INS bias' change between knots: attitude about world x, y, z
+    (rad), position along world x, y, z (m), from the INS's wander against the odometry.
+
+    The attitude's horizontal axes take the larger of the roll and pitch wander, the
+    vertical the heading's. Where the odometry is degenerate along the track it cannot judge
+    the INS positions, which then keep the floor: they carry the along-track motion.
+    """
+    a_floor, a_default, a_cap = sig.att_bias_step
+    p_floor, p_default, p_cap = sig.pos_bias_step
+    out = np.array([a_default] * 3 + [p_default] * 3)
+    try:
+        T_odo = odometry_track(inp)[0].T
+    except Exception as exc:
+        health.warn(f"fused: INS wander not measured (no odometry: {exc}); default sigmas")
+        return out
+    T_ins = ins.T_world_base.copy()
+    T_ins[:, :3, 3] = p_ins
+    times = np.asarray(inp.times, dtype=np.float64)
+    w = ins_wander(T_ins, T_odo, times, ins.covered, sig.bias_knot_s)
+    if w is None:
+        return out
+    rot = w.rotation_rad
+    out[:3] = np.clip([max(rot[0], rot[1])] * 2 + [rot[2]], a_floor, a_cap)
+    out[3:] = np.clip(w.position_m, p_floor, p_cap)
+    if degenerate:
+        out[3:] = p_floor
+    for name, v in zip(("roll", "pitch", "heading"), rot, strict=True):
+        health.metrics[f"fused_ins_wander_{name}_deg"] = float(np.degrees(v))
+    for name, v in zip(("east", "north", "up"), w.position_m, strict=True):
+        health.metrics[f"fused_ins_wander_{name}_m"] = float(v)
+    return out
 
 
 def _heading_change_deg(R_world_base: F64) -> float:
@@ -365,12 +502,13 @@ def _heading_change_deg(R_world_base: F64) -> float:
     return float(np.degrees(np.ptp(yaw))) if len(yaw) else 0.0
 
 
-def _column_groups(n: int) -> list[NDArray[np.int64]]:
+def _column_groups(n: int, n_knots: int) -> list[NDArray[np.int64]]:
     """Columns that share no residual row (finite differences in one evaluation each).
 
-    A residual row touches at most three consecutive frames and the misalignment, so frame
-    columns with the same (frame mod 3, component) go together; the 7 misalignment columns
-    each stand alone.
+    A residual row touches at most three consecutive frames, the misalignment and two
+    consecutive bias knots, so frame columns with the same (frame mod 3, component) go
+    together, as do knot columns with the same (knot mod 3, component); the 7 misalignment
+    columns each stand alone.
     """
     groups = []
     for phase in range(3):
@@ -379,6 +517,11 @@ def _column_groups(n: int) -> list[NDArray[np.int64]]:
             if len(frames):
                 groups.append(6 * frames + comp)
     groups.extend(np.array([6 * n + j]) for j in range(7))
+    for phase in range(3):
+        for comp in range(6):
+            knots = np.arange(phase, n_knots, 3)
+            if len(knots):
+                groups.append(6 * n + 7 + 6 * knots + comp)
     return groups
 
 
@@ -408,9 +551,9 @@ def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
     The problem is nearly linear (small rotation corrections), so a few iterations converge;
     a small Levenberg damping keeps the unobservable directions at their priors.
     """
-    x = np.zeros(6 * pb.n + 7) if x0 is None else x0.copy()
+    x = np.zeros(_n_params(pb.n, pb.n_knots)) if x0 is None else x0.copy()
     S = sparsity(pb)
-    groups = _column_groups(pb.n)
+    groups = _column_groups(pb.n, pb.n_knots)
     c = pb.sig.huber
     for _ in range(max_iter):
         r = residuals(x, pb)
@@ -493,6 +636,13 @@ class FusedStrategy:
             return self._fallback(inp, health, started, "non-finite solution")
         cal = misalignment(x, pb.n)
         health.metrics.update(_block_rms(pb, x))
+        knots = _bias_knots_of(x, pb)
+        health.metrics["fused_ins_attitude_bias_max_deg"] = float(
+            np.degrees(np.max(np.linalg.norm(knots[:, :3], axis=1)))
+        )
+        health.metrics["fused_ins_position_bias_max_m"] = float(
+            np.max(np.linalg.norm(knots[:, 3:], axis=1))
+        )
         notes = self._observability(inp, pb, health)
         return make_result(
             self.name,
