@@ -938,6 +938,11 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hard", action="store_true", help="the 12 hard cases with their bounds")
     p.add_argument("--no-floor", action="store_true", help="skip the I/O floor measurement")
     p.add_argument(
+        "--ins-profile", default="osdar23",
+        help="synthetic INS of the sequences: osdar23 (default: wanders like the real INS), "
+        "paper, good, perfect, hard",
+    )  # fmt: skip
+    p.add_argument(
         "--workdir", type=Path, default=Path("/tmp/osdar_bench"),
         help="generated sequences, per-frame CSVs, pareto.png (reused between runs)",
     )  # fmt: skip
@@ -945,11 +950,14 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from worker.bench.run import run_bench
+    from dataclasses import replace
 
+    from worker.bench.run import FULL, QUICK, run_bench
+
+    settings = replace(QUICK if args.quick else FULL, ins_profile=args.ins_profile)
     result = run_bench(
         quick=args.quick, workdir=args.workdir, json_path=args.json, hard=args.hard,
-        floor=not args.no_floor,
+        floor=not args.no_floor, settings=settings,
     )  # fmt: skip
     if args.hard:
         return 0 if all(c["ok"] for c in result["hard_cases"]) else 1

@@ -65,19 +65,23 @@ class BenchSettings:
     strategies: tuple[str, ...] = ("ins", "odometry", "rails", "fused")
     scenes: tuple[str, ...] = tuple(SEQUENCES)
     voxel_size: float = 0.1
+    #: The synthetic INS (:meth:`~worker.synth.ins_sim.InsErrorModel.profile`): "osdar23"
+    #: wanders slowly like the real sequences' INS, whose raw reprojection errors are the
+    #: paper's band.
+    ins_profile: str = "osdar23"
 
 
 def make_sequence(root: Path, scene: str, s: BenchSettings, **extra: Any) -> Path:
     """Generate (once; deterministic from the settings) a synthetic sequence."""
     from worker.synth.generator import SynthConfig, generate
 
-    tag = f"{scene}_f{s.frames}_s{s.scale:g}_d{s.lidar_density:g}_r{s.seed}"
+    tag = f"{scene}_f{s.frames}_s{s.scale:g}_d{s.lidar_density:g}_r{s.seed}_{s.ins_profile}"
     tag += "".join(f"_{k}" for k in sorted(extra))
     folder = Path(root) / tag
     if not (folder / "ground_truth" / "meta.json").is_file():
         cfg = SynthConfig(
             scene=scene, frames=s.frames, scale=s.scale, lidar_density=s.lidar_density,
-            seed=s.seed, **extra,
+            seed=s.seed, ins_profile=s.ins_profile, **extra,
         )  # fmt: skip
         generate(folder, cfg)
     return folder
