@@ -54,6 +54,7 @@ from worker.preparation.rails_geometric import (
     rail_head_candidates,
 )
 from worker.preparation.registration import RegisteredCloud
+from worker.robust_stats import mad_sigma
 
 if TYPE_CHECKING:
     from worker.osdar.sequence import Sequence
@@ -153,7 +154,7 @@ def _robust_smooth(x: F64, y: F64, w: F64, xq: F64, sigma: float, floor: float) 
     if len(x) >= 4:
         fit = np.interp(x, xq, yq) if len(xq) > 1 else np.full(len(x), yq[0])
         r = y - fit
-        mad = 1.4826 * np.median(np.abs(r[w > 0])) if np.any(w > 0) else floor
+        mad = float(mad_sigma(r[w > 0], centred=False)) if np.any(w > 0) else floor
         w2 = np.where(np.abs(r) <= 3.0 * max(mad, floor), w, 0.0)
         if w2.sum() > 0:
             yq, s0 = _local_linear(x, y, w2, xq, sigma)

@@ -28,6 +28,7 @@ from worker.osdar.sequence import Sequence
 from worker.poses import PoseTrack, ins_to_base_poses
 from worker.preparation.centreline import Centreline
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
+from worker.robust_stats import mad_sigma
 
 F64 = NDArray[np.float64]
 log = logging.getLogger("worker.preparation.localization")
@@ -186,7 +187,7 @@ def detect_jumps(p: F64, v: F64, times: F64, covered: NDArray[np.bool_]) -> tupl
     predicted = 0.5 * (v[:-1] + v[1:]) * dt[:, None]
     excess = np.diff(p, axis=0) - predicted
     mag = np.linalg.norm(excess, axis=1)
-    noise = 1.4826 * float(np.median(np.abs(mag - np.median(mag)))) + float(np.median(mag))
+    noise = float(mad_sigma(mag)) + float(np.median(mag))
     thresh = max(JUMP_THRESHOLD_M, 8.0 * noise)
     both = covered[:-1] & covered[1:]
     ks = [int(k) + 1 for k in np.flatnonzero((mag > thresh) & both)]

@@ -18,9 +18,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from worker.robust_stats import mad_sigma
+
 F64 = NDArray[np.float64]
 
-#: Values beyond this many robust sigmas (1.4826 x median |x|) are outliers (GNSS jumps).
+#: Values beyond this many robust sigmas (MAD about zero) are outliers (GNSS jumps).
 OUTLIER_SIGMAS = 5.0
 #: At least this many frame pairs to measure anything.
 MIN_PAIRS = 5
@@ -46,7 +48,7 @@ def robust_rms(x: F64) -> F64:
     ``OUTLIER_SIGMAS`` robust sigmas (a few GNSS jumps do not count; a steady drift, whose
     values are all alike, is measured as it is)."""
     a = np.abs(np.asarray(x, dtype=np.float64))
-    limit = OUTLIER_SIGMAS * 1.4826 * np.median(a, axis=0)
+    limit = OUTLIER_SIGMAS * mad_sigma(a, axis=0, centred=False)
     keep = a <= limit[None, :]
     return np.sqrt(np.sum(np.where(keep, a * a, 0.0), axis=0) / np.maximum(keep.sum(axis=0), 1))
 

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from worker.preparation.centreline import Centreline
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
 from worker.preparation.localization.common import ins_at_frames, make_result
+from worker.robust_stats import mad_sigma
 
 F64 = NDArray[np.float64]
 
@@ -74,7 +75,7 @@ def orientation_noise(ego: Centreline, s_lo: float, s_hi: float) -> F64:
     out = np.zeros(3)
     for i, a in enumerate((ego.roll(s), pitch, heading)):
         d2 = a[:-2] - 2.0 * a[1:-1] + a[2:]
-        out[i] = 1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0)
+        out[i] = mad_sigma(d2) / np.sqrt(6.0)
     return out
 
 
