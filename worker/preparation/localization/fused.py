@@ -58,6 +58,7 @@ from worker.preparation.localization.common import (
     poses_from,
     remove_jumps,
 )
+from worker.preparation.localization.ground_pairs import ground_pairs
 from worker.preparation.localization.ins_wander import ins_wander
 from worker.preparation.localization.odometry import (
     degenerate_frames,
@@ -65,6 +66,7 @@ from worker.preparation.localization.odometry import (
     odometry_deltas,
     odometry_run,
     odometry_track,
+    read_points,
 )
 from worker.preparation.localization.rails import orientation_noise, rail_frames
 
@@ -87,8 +89,12 @@ class Sigmas:
     #: KISS-ICP's 6; at 0.2 m a 3 m GNSS jump leaked into the poses).
     ins_p: float = 0.1
     ins_r: float = 0.03 * DEG
-    rail_lat: float = 0.015
-    rail_vert: float = 0.01
+    #: The base origin on the fitted centreline (m). Loose: the centreline is fitted from a
+    #: cloud registered with the odometry's poses, its errors run along the track over
+    #: metres, and tens of frames share them; at 1.5 / 1 cm they pinned the poses to those
+    #: errors (C2 RPE 3.4 px on the bench against 2.9 with the odometry alone).
+    rail_lat: float = 0.05
+    rail_vert: float = 0.05
     #: Floor of the rail orientation sigmas (roll, pitch, heading). The sigmas used are the
     #: larger of this and the centreline's own measured orientation noise
     #: (:func:`~worker.preparation.localization.rails.orientation_noise`): a fitted
@@ -102,8 +108,12 @@ class Sigmas:
     #: wandered by 0.28 deg; with the 0.05 deg floor the fused roll followed it once the INS
     #: attitude's slow part was freed, and the C2 RPE rose by 0.4-0.9 px).
     rail_r: tuple[float, float, float] = (0.4 * DEG, 0.05 * DEG, 0.05 * DEG)
-    acc: float = 0.02
-    rot_acc: float = 0.02 * DEG
+    #: Second differences of the positions, along the middle frame's base (x along the
+    #: track, y lateral, z up), m.
+    acc: tuple[float, float, float] = (0.02, 0.02, 0.02)
+    #: Second differences of the frame-to-frame rotation, about the base's (roll, pitch,
+    #: heading) axes.
+    rot_acc: tuple[float, float, float] = (0.02 * DEG, 0.02 * DEG, 0.02 * DEG)
     lever: float = 1.0
     boresight: float = 2.0 * DEG
     latency: float = 0.05
@@ -120,6 +130,14 @@ class Sigmas:
     #: term) dragged the poses with it (23 px on C2), or the rails' noisier orientation
     #: replaced a good INS's (2.4 -> 3.0 px).
     bias_knot_s: float = 1.0
+    #: Ground pairs (:mod:`~worker.preparation.localization.ground_pairs`): frame offsets,
+    #: and the sigmas of a pair's (height m, roll rad, pitch rad) as ``a + b * lag``, from
+    #: their measured errors on the synthetic scenes (pitch 0.001 deg over 1 frame, 0.004
+    #: over 10; height 1.3 and 4 mm; roll 0.006 and 0.011 deg). No lag may be a multiple of
+    #: 3 (see :func:`_column_groups`).
+    ground_lags: tuple[int, ...] = (1, 10)
+    ground_sigma_a: tuple[float, float, float] = (0.0015, 0.005 * DEG, 0.001 * DEG)
+    ground_sigma_b: tuple[float, float, float] = (0.0003, 0.0006 * DEG, 0.0003 * DEG)
     att_bias: float = 1.0 * DEG
     pos_bias: float = 2.0
     att_bias_step: tuple[float, float, float] = (0.01 * DEG, 0.1 * DEG, 1.0 * DEG)
@@ -151,6 +169,7 @@ class Problem:
     n_knots: int  # number of INS bias knots (>= 1)
     bias_sigma: F64  # (6,) prior sigmas of a knot's size (attitude rad, position m)
     bias_step_sigma: F64  # (6,) prior sigmas of its change between knots
+    ground: dict | None = None  # ground pairs: k, j (P,), T_k_j (P, 4, 4), w (P, 3)
 
 
 def _rotvec_rates(R: F64, times: F64) -> F64:
@@ -258,11 +277,22 @@ def residuals(x: F64, pb: Problem) -> F64:
         out.append(ver_r)
         err = Rotation.from_matrix(np.swapaxes(Rr, 1, 2) @ R).as_rotvec()
         out.append((err / pb.rail["sigma_r"]).ravel())
+    # ground pairs: height, roll and pitch of frame j in frame k
+    if pb.ground is not None:
+        g = pb.ground
+        Rk, Rj = R[g["k"]], R[g["j"]]
+        MRt = np.swapaxes(g["T_k_j"][:, :3, :3], 1, 2)
+        B_t = np.einsum("nji,nj->ni", Rk, p[g["j"]] - p[g["k"]])
+        E_t = np.einsum("nij,nj->ni", MRt, B_t - g["T_k_j"][:, :3, 3])
+        E_r = Rotation.from_matrix(MRt @ np.swapaxes(Rk, 1, 2) @ Rj).as_rotvec()
+        out.append((np.column_stack([E_t[:, 2], E_r[:, 0], E_r[:, 1]]) * g["w"]).ravel())
     # smoothness
     if pb.n >= 3:
-        out.append(((p[:-2] - 2.0 * p[1:-1] + p[2:]) / sig.acc).ravel())
+        a_world = p[:-2] - 2.0 * p[1:-1] + p[2:]
+        a_base = np.einsum("nji,nj->ni", R[1:-1], a_world)
+        out.append((a_base / np.asarray(sig.acc)).ravel())
         w = Rotation.from_matrix(np.swapaxes(R[:-1], 1, 2) @ R[1:]).as_rotvec()
-        out.append(((w[1:] - w[:-1]) / sig.rot_acc).ravel())
+        out.append(((w[1:] - w[:-1]) / np.asarray(sig.rot_acc)).ravel())
     out.append(lever / pb.lever_sigma)
     out.append(bore / pb.bore_sigma)
     out.append(np.array([lat / sig.latency]))
@@ -311,6 +341,11 @@ def sparsity(pb: Problem) -> csc_matrix:
         for k in range(n):
             for _ in range(3):
                 rows.append((r, frame_cols(k)))
+                r += 1
+    if pb.ground is not None:
+        for k, j in zip(pb.ground["k"], pb.ground["j"], strict=True):
+            for _ in range(3):
+                rows.append((r, frame_cols(int(k)) + frame_cols(int(j))))
                 r += 1
     if n >= 3:
         for _ in range(2):  # position and rotation smoothness
@@ -451,7 +486,41 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         n_knots=n_knots,
         bias_sigma=bias_sigma,
         bias_step_sigma=bias_step,
+        ground=_ground_constraints(inp, health, sig) if n >= 2 else None,
     )
+
+
+def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> dict | None:
+    """Ground pairs over the odometry's relative poses as residual data (or None)."""
+    if any(lag % 3 == 0 for lag in sig.ground_lags):
+        raise ValueError(f"ground lags {sig.ground_lags}: none may be a multiple of 3")
+    try:
+        run = odometry_run(inp)
+    except Exception as exc:
+        health.warn(f"fused: no ground pairs (odometry unavailable: {exc})")
+        return None
+    skipped = set(run.skipped)
+    points = [read_points(inp, f) for f in inp.frames]
+    pairs = [
+        pr
+        for pr in ground_pairs(points, run.T_odom_base, sig.ground_lags)
+        if pr.k not in skipped and pr.j not in skipped
+    ]
+    health.metrics["fused_ground_pairs"] = float(len(pairs))
+    if not pairs:
+        health.warn("fused: no ground seen in common by frame pairs; height and pitch drift")
+        return None
+    lag = np.array([pr.j - pr.k for pr in pairs], dtype=np.float64)
+    sigma = np.asarray(sig.ground_sigma_a)[None, :] + lag[:, None] * np.asarray(
+        sig.ground_sigma_b
+    )
+    health.metrics["fused_ground_rms_m"] = float(np.median([pr.rms_m for pr in pairs]))
+    return {
+        "k": np.array([pr.k for pr in pairs], dtype=np.int64),
+        "j": np.array([pr.j for pr in pairs], dtype=np.int64),
+        "T_k_j": np.array([pr.T_k_j for pr in pairs]),
+        "w": 1.0 / sigma,
+    }
 
 
 def _bias_step_sigmas(

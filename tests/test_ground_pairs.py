@@ -1,0 +1,69 @@
+"""Ground pairs: height, roll and pitch of one frame in another from the ground both see."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from worker.preparation.localization.ground_pairs import frame_ground, ground_pair
+
+DEG = np.pi / 180.0
+
+
+def _surface(xy: np.ndarray) -> np.ndarray:
+    """A sloped, canted, undulating ground (world heights, m)."""
+    x, y = xy[:, 0], xy[:, 1]
+    return 0.01 * x + 0.02 * y + 0.08 * np.sin(0.25 * x) * np.cos(0.3 * y)
+
+
+def _frame_points(T_world_base: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(m, 3) base points of ground (5 mm noise) and poles seen from a base pose."""
+    local = rng.uniform([-25.0, -18.0], [75.0, 18.0], size=(40000, 2))
+    xy_w = local @ T_world_base[:2, :2].T + T_world_base[:2, 3]
+    ground = np.column_stack([xy_w, _surface(xy_w) + rng.normal(0.0, 0.005, len(xy_w))])
+    poles = []
+    for px, py in ((20.0, 4.0), (45.0, -5.0), (60.0, 6.0)):
+        h = rng.uniform(0.0, 6.0, 300)
+        poles.append(np.column_stack([np.full(300, px), np.full(300, py), h]))
+    pts_w = np.concatenate([ground] + poles)
+    T_base_world = np.linalg.inv(T_world_base)
+    return pts_w @ T_base_world[:3, :3].T + T_base_world[:3, 3]
+
+
+def _pose(t: tuple[float, float, float], rpy_deg: tuple[float, float, float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", rpy_deg, degrees=True).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def test_ground_pair_recovers_height_roll_and_pitch() -> None:
+    rng = np.random.default_rng(3)
+    T_w_k = _pose((0.0, 0.0, 0.3), (0.04, -0.6, 10.0))
+    T_w_j = T_w_k @ _pose((8.0, 0.05, 0.08), (0.03, 0.05, 0.4))
+    gk = frame_ground(_frame_points(T_w_k, rng))
+    gj = frame_ground(_frame_points(T_w_j, rng))
+    T_true = np.linalg.inv(T_w_k) @ T_w_j
+    # The odometry's guess: 3 cm low, 0.05 deg of pitch and 0.04 of roll off.
+    T_guess = _pose((0.0, 0.0, -0.03), (0.04, 0.05, 0.0)) @ T_true
+    pair = ground_pair(gk, gj, T_guess, 0, 1)
+    assert pair is not None
+    E = np.linalg.inv(T_true) @ pair.T_k_j
+    roll, pitch, _ = np.degrees(Rotation.from_matrix(E[:3, :3]).as_rotvec())
+    # The guess was 30 mm / 0.05 deg / 0.04 deg off; the ground brings it within 1 mm and 0.003 deg.
+    assert abs(E[2, 3]) < 0.001
+    assert abs(pitch) < 0.002
+    assert abs(roll) < 0.003
+    # Along-track, lateral and heading are the guess's: the ground says nothing of them.
+    assert np.allclose(pair.T_k_j[:2, 3], T_guess[:2, 3], atol=0.01)
+    assert pair.matched > 1000
+
+
+def test_ground_pair_without_common_ground_says_nothing() -> None:
+    rng = np.random.default_rng(4)
+    gk = frame_ground(_frame_points(np.eye(4), rng))
+    far = _pose((500.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # no overlap
+    gj = frame_ground(_frame_points(far, rng))
+    assert ground_pair(gk, gj, far, 0, 1) is None
+    empty = frame_ground(np.zeros((0, 3)))
+    assert ground_pair(gk, empty, np.eye(4), 0, 1) is None
