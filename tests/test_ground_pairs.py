@@ -25,7 +25,7 @@ def _frame_points(T_world_base: np.ndarray, rng: np.random.Generator) -> np.ndar
     for px, py in ((20.0, 4.0), (45.0, -5.0), (60.0, 6.0)):
         h = rng.uniform(0.0, 6.0, 300)
         poles.append(np.column_stack([np.full(300, px), np.full(300, py), h]))
-    pts_w = np.concatenate([ground] + poles)
+    pts_w = np.concatenate([ground, *poles])
     T_base_world = np.linalg.inv(T_world_base)
     return pts_w @ T_base_world[:3, :3].T + T_base_world[:3, 3]
 
