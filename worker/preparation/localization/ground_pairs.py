@@ -41,7 +41,9 @@ COLUMN_M = 1.0
 GROUND_BAND_M = 0.08
 #: Height grid cell (m) and ground points kept per frame (evenly strided).
 CELL_M = 0.5
-MAX_POINTS = 6000
+MAX_POINTS = 4000
+#: Input points used (every STRIDE-th).
+STRIDE = 2
 #: Fewer matched ground points than this: the pair says nothing.
 MIN_MATCHED = 300
 #: Trim residuals beyond this many robust sigmas (floor in m).
@@ -75,7 +77,8 @@ class GroundPair:
 
 def frame_ground(points_base: F64, rng: np.random.Generator | None = None) -> FrameGround:
     """Ground points and height grid of one frame (points (n, 3) in its base frame)."""
-    p = np.asarray(points_base, dtype=np.float64)
+    # Every STRIDE-th point: the ground is sampled far more densely than a 0.5 m grid needs.
+    p = np.asarray(points_base, dtype=np.float64)[::STRIDE]
     inside = (
         (p[:, 0] > BOX_X[0]) & (p[:, 0] < BOX_X[1]) & (p[:, 1] > BOX_Y[0]) & (p[:, 1] < BOX_Y[1])
     )
@@ -133,25 +136,28 @@ def ground_pair(
     if len(ground_j.points) < MIN_MATCHED:
         return None
     q = ground_j.points @ T_k_j[:3, :3].T + T_k_j[:3, 3]
-    x = np.zeros(3)  # dz, roll, pitch (small angles about frame k's axes)
-    ok = np.zeros(len(q), dtype=bool)
-    r = np.zeros(len(q))
+    # The correction moves points vertically only: the grid heights under them are fixed.
+    r0 = q[:, 2] - _grid_heights(ground_k.grid, q[:, :2])
+    finite = np.isfinite(r0)
+    if int(np.sum(finite)) < MIN_MATCHED:
+        return None
+    q, r0 = q[finite], r0[finite]
+    A = np.stack([np.ones(len(q)), q[:, 1], -q[:, 0]], axis=1)  # d(residual)/d(dz, roll, pitch)
+    x = np.zeros(3)
+    ok = np.ones(len(q), dtype=bool)
+    r = r0
     for _ in range(4):
-        z = q[:, 2] + x[0] + x[1] * q[:, 1] - x[2] * q[:, 0]
-        r = z - _grid_heights(ground_k.grid, q[:, :2])
-        ok = np.isfinite(r)
-        if int(np.sum(ok)) < MIN_MATCHED:
-            return None
+        r = r0 + A @ x
         med = float(np.median(r[ok]))
         spread = max(mad_sigma(r[ok]), TRIM_FLOOR_M)
-        ok &= np.abs(r - med) < TRIM_SIGMAS * spread
-        if int(np.sum(ok)) < MIN_MATCHED:
+        keep = np.abs(r - med) < TRIM_SIGMAS * spread
+        if int(np.sum(keep)) < MIN_MATCHED:
             return None
-        A = np.stack([np.ones(int(np.sum(ok))), q[ok, 1], -q[ok, 0]], axis=1)
-        dx, *_ = np.linalg.lstsq(A, -r[ok], rcond=None)
-        x = x + dx
-        if np.max(np.abs(dx)) < 1e-7:
+        if np.array_equal(keep, ok) and np.any(x):
             break
+        ok = keep
+        x, *_ = np.linalg.lstsq(A[ok], -r0[ok], rcond=None)
+    r = r0 + A @ x
     if not np.all(np.isfinite(x)):
         return None
     C = np.eye(4)
