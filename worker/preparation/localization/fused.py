@@ -17,11 +17,15 @@ Residuals, each divided by its standard deviation:
   attitude sample by its angular rate: the heading lag in curves), weak, after removing
   detected GNSS jump steps; a Huber loss takes what remains of jumps and drift;
 - the rail constraint when an ego centreline is known: the base origin on the centreline
-  (lateral, and height along the canted rail-plane normal, sigma ~1-2 cm for body sway),
+  (lateral, and height along the canted rail-plane normal, sigma 5 cm: the fitted
+  centreline's errors run along the track and many frames share them),
   the orientation near the centreline frame (heading from the tangent, pitch from the
   slope, roll from the cant); linearised at the current positions and re-linearised once;
-- a smoothness prior on the positions and rotations (second differences), and priors on the
-  misalignment (zero lever arm, boresight and latency).
+- ground pairs (:mod:`~worker.preparation.localization.ground_pairs`): the height, roll and
+  pitch of frame k + lag in frame k (lags 1 and 10) from the ground both frames see. KISS-ICP
+  runs without the ground and drifts in pitch; the ground fixes exactly those three;
+- a smoothness prior on the positions and rotations (second differences, per base axis), and
+  priors on the misalignment (zero lever arm, boresight and latency).
 
 Solved by Gauss-Newton with Huber weights (iteratively reweighted) on the sparse normal
 equations, the Jacobian by grouped finite differences (a few dozen residual evaluations);
