@@ -176,6 +176,28 @@ class Problem:
     ground: dict | None = None  # ground pairs: k, j (P,), T_k_j (P, 4, 4), w (P, 3)
 
 
+def _log_rotation(R: F64) -> F64:
+    """(n, 3) rotation vectors of rotation matrices (n, 3, 3), accurate at small angles.
+
+    The residuals take this many times per Jacobian (scipy's ``from_matrix`` orthonormalises
+    and checks every matrix and was a fifth of the smoothing's time). Angles above 3 rad
+    (never a residual here, but possible in principle) go through scipy.
+    """
+    v = 0.5 * np.stack(
+        [R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1
+    )
+    s = np.linalg.norm(v, axis=1)
+    c = 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0)
+    theta = np.arctan2(s, c)
+    small = s < 1e-12
+    scale = np.where(small, 1.0, theta / np.where(small, 1.0, s))
+    out = v * scale[:, None]
+    big = theta > 3.0
+    if np.any(big):
+        out[big] = Rotation.from_matrix(R[big]).as_rotvec()
+    return out
+
+
 def _rotvec_rates(R: F64, times: F64) -> F64:
     """(n, 3) world angular rates from rotations (n, 3, 3) by central differences."""
     n = len(R)
@@ -253,7 +275,7 @@ def residuals(x: F64, pb: Problem) -> F64:
     dp = np.einsum("nij,nj->ni", Rt, p[1:] - p[:-1]) - pb.d_t
     out.append((dp * pb.w_odo_t).ravel())
     E = np.swapaxes(pb.d_R, 1, 2) @ Rt @ R[1:]
-    out.append((Rotation.from_matrix(E).as_rotvec() * pb.w_odo_r[:, None]).ravel())
+    out.append((_log_rotation(E) * pb.w_odo_r[:, None]).ravel())
     # INS
     k = pb.ins_k
     if len(k):
@@ -269,7 +291,7 @@ def residuals(x: F64, pb: Problem) -> F64:
         R_pred = (
             Rotation.from_rotvec(beta).as_matrix() @ R[k] @ Rotation.from_rotvec(bore).as_matrix()
         )
-        err = Rotation.from_matrix(np.swapaxes(R_meas, 1, 2) @ R_pred).as_rotvec()
+        err = _log_rotation(np.swapaxes(R_meas, 1, 2) @ R_pred)
         out.append((err / sig.ins_r).ravel())
     # rails
     if pb.rail is not None:
@@ -279,7 +301,7 @@ def residuals(x: F64, pb: Problem) -> F64:
         ver_r = np.einsum("ni,ni->n", d, Rr[:, :, 2]) / sig.rail_vert
         out.append(lat_r)
         out.append(ver_r)
-        err = Rotation.from_matrix(np.swapaxes(Rr, 1, 2) @ R).as_rotvec()
+        err = _log_rotation(np.swapaxes(Rr, 1, 2) @ R)
         out.append((err / pb.rail["sigma_r"]).ravel())
     # ground pairs: height, roll and pitch of frame j in frame k
     if pb.ground is not None:
@@ -288,14 +310,14 @@ def residuals(x: F64, pb: Problem) -> F64:
         MRt = np.swapaxes(g["T_k_j"][:, :3, :3], 1, 2)
         B_t = np.einsum("nji,nj->ni", Rk, p[g["j"]] - p[g["k"]])
         E_t = np.einsum("nij,nj->ni", MRt, B_t - g["T_k_j"][:, :3, 3])
-        E_r = Rotation.from_matrix(MRt @ np.swapaxes(Rk, 1, 2) @ Rj).as_rotvec()
+        E_r = _log_rotation(MRt @ np.swapaxes(Rk, 1, 2) @ Rj)
         out.append((np.column_stack([E_t[:, 2], E_r[:, 0], E_r[:, 1]]) * g["w"]).ravel())
     # smoothness
     if pb.n >= 3:
         a_world = p[:-2] - 2.0 * p[1:-1] + p[2:]
         a_base = np.einsum("nji,nj->ni", R[1:-1], a_world)
         out.append((a_base / np.asarray(sig.acc)).ravel())
-        w = Rotation.from_matrix(np.swapaxes(R[:-1], 1, 2) @ R[1:]).as_rotvec()
+        w = _log_rotation(np.swapaxes(R[:-1], 1, 2) @ R[1:])
         out.append(((w[1:] - w[:-1]) / np.asarray(sig.rot_acc)).ravel())
     out.append(lever / pb.lever_sigma)
     out.append(bore / pb.bore_sigma)
@@ -494,6 +516,18 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     )
 
 
+def _stored_points(inp: LocalizationInput, frame: int) -> NDArray[np.floating]:
+    """(m, 3) base points of a frame: the shared float32 cloud as stored when there is one
+    (no float64 copy of the whole cloud), else read."""
+    shared = inp.options.get("_frame_clouds")
+    if shared is None:
+        return read_points(inp, frame)
+    try:
+        return shared.get(frame).p_base32
+    except Exception:  # unreadable: read_points warns and gives an empty cloud
+        return read_points(inp, frame)
+
+
 def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> dict | None:
     """Ground pairs over the odometry's relative poses as residual data (or None)."""
     if any(lag % 3 == 0 for lag in sig.ground_lags):
@@ -504,7 +538,7 @@ def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> 
         health.warn(f"fused: no ground pairs (odometry unavailable: {exc})")
         return None
     skipped = set(run.skipped)
-    points = [read_points(inp, f) for f in inp.frames]
+    points = [_stored_points(inp, f) for f in inp.frames]
     pairs = [
         pr
         for pr in ground_pairs(points, run.T_odom_base, sig.ground_lags)
@@ -515,9 +549,7 @@ def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> 
         health.warn("fused: no ground seen in common by frame pairs; height and pitch drift")
         return None
     lag = np.array([pr.j - pr.k for pr in pairs], dtype=np.float64)
-    sigma = np.asarray(sig.ground_sigma_a)[None, :] + lag[:, None] * np.asarray(
-        sig.ground_sigma_b
-    )
+    sigma = np.asarray(sig.ground_sigma_a)[None, :] + lag[:, None] * np.asarray(sig.ground_sigma_b)
     health.metrics["fused_ground_rms_m"] = float(np.median([pr.rms_m for pr in pairs]))
     return {
         "k": np.array([pr.k for pr in pairs], dtype=np.int64),

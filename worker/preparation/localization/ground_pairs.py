@@ -75,10 +75,11 @@ class GroundPair:
     rms_m: float
 
 
-def frame_ground(points_base: F64, rng: np.random.Generator | None = None) -> FrameGround:
-    """Ground points and height grid of one frame (points (n, 3) in its base frame)."""
+def frame_ground(points_base: NDArray[np.floating]) -> FrameGround:
+    """Ground points and height grid of one frame (points (n, 3) in its base frame; float32
+    clouds are used as stored)."""
     # Every STRIDE-th point: the ground is sampled far more densely than a 0.5 m grid needs.
-    p = np.asarray(points_base, dtype=np.float64)[::STRIDE]
+    p = np.asarray(points_base[::STRIDE], dtype=np.float64)
     inside = (
         (p[:, 0] > BOX_X[0]) & (p[:, 0] < BOX_X[1]) & (p[:, 1] > BOX_Y[0]) & (p[:, 1] < BOX_Y[1])
     )
@@ -174,7 +175,7 @@ def _small_rotation(roll: float, pitch: float) -> F64:
 
 
 def ground_pairs(
-    points_base: list[F64], T_odom_base: F64, lags: tuple[int, ...]
+    points_base: list[NDArray[np.floating]], T_odom_base: F64, lags: tuple[int, ...]
 ) -> list[GroundPair]:
     """Ground corrections of the odometry's relative poses for every pair (k, k + lag).
 
