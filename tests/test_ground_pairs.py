@@ -67,3 +67,19 @@ def test_ground_pair_without_common_ground_says_nothing() -> None:
     assert ground_pair(gk, gj, far, 0, 1) is None
     empty = frame_ground(np.zeros((0, 3)))
     assert ground_pair(gk, empty, np.eye(4), 0, 1) is None
+
+
+def test_column_floor_is_each_columns_lowest_point() -> None:
+    """Against a brute-force minimum per 1 m column, for a compact cloud (dense table) and one
+    with a point 5 km away (occupied columns only)."""
+    from worker.preparation.localization.ground_pairs import column_floor
+
+    rng = np.random.default_rng(6)
+    p = np.column_stack([rng.uniform(-10, 10, (3000, 2)), rng.normal(0, 1, 3000)])
+    for cloud in (p, np.vstack([p, [[5000.0, -3000.0, 7.0]]])):
+        got = column_floor(cloud, 1.0)
+        cols = np.floor(cloud[:, :2]).astype(np.int64)
+        for c in {tuple(c) for c in cols[::50]}:
+            same = np.all(cols == c, axis=1)
+            assert np.all(got[same] == cloud[same, 2].min())
+    assert column_floor(np.zeros((0, 3)), 1.0).shape == (0,)

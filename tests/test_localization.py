@@ -380,3 +380,35 @@ def test_fused_takes_height_and_pitch_from_the_ground(wandering: dict, lag: int)
     # against 6.9 / 26 mm.
     assert fused[0] < 0.3 * odo[0], (fused, odo)
     assert fused[1] < 0.5 * odo[1], (fused, odo)
+
+
+def test_rotation_log_matches_scipy_at_every_angle() -> None:
+    """fused's own rotation logarithm (the residuals' hot path) against scipy, from 1e-9 rad
+    to beyond 3 rad (where it hands over to scipy)."""
+    from worker.preparation.localization.fused import _log_rotation
+
+    rng = np.random.default_rng(5)
+    for angle in (1e-9, 1e-6, 1e-3, 0.5, 2.9, 3.1):
+        axes = rng.normal(size=(200, 3))
+        rv = axes / np.linalg.norm(axes, axis=1, keepdims=True) * angle
+        got = _log_rotation(Rotation.from_rotvec(rv).as_matrix())
+        assert np.max(np.abs(got - rv)) < 1e-12 * max(1.0, angle), angle
+
+
+def test_grouped_jacobian_matches_column_by_column(results: dict) -> None:
+    """The grouped finite-difference Jacobian equals one column at a time, also with a
+    ground lag of 3 (the frame groups' period grows so no row sees two perturbed frames)."""
+    from worker.preparation.localization import fused as F
+    from worker.preparation.localization.base import Health
+
+    pb = F.build_problem(results["fire_site"]["_inp"], Health(), F.Sigmas(ground_lags=(1, 3)))
+    assert pb.ground is not None and F._frame_period(pb) == 4
+    x = np.random.default_rng(0).normal(0.0, 1e-4, F._n_params(pb.n, pb.n_knots))
+    r0 = F.residuals(x, pb)
+    S = F.sparsity(pb)
+    J = F.jacobian(x, r0, pb, S, F._column_groups(pb.n, pb.n_knots, F._frame_period(pb)))
+    J1 = F.jacobian(x, r0, pb, S, [np.array([c]) for c in range(len(x))])
+    assert abs(J - J1).max() < 1e-6 * max(1.0, abs(J1).max())
+    # the period-3 grouping would be wrong here: rows of lag-3 pairs see two perturbed frames
+    J3 = F.jacobian(x, r0, pb, S, F._column_groups(pb.n, pb.n_knots, 3))
+    assert abs(J3 - J1).max() > 1e-3 * abs(J1).max()

@@ -137,8 +137,7 @@ class Sigmas:
     #: Ground pairs (:mod:`~worker.preparation.localization.ground_pairs`): frame offsets,
     #: and the sigmas of a pair's (height m, roll rad, pitch rad) as ``a + b * lag``, from
     #: their measured errors on the synthetic scenes (pitch 0.001 deg over 1 frame, 0.004
-    #: over 10; height 1.3 and 4 mm; roll 0.006 and 0.011 deg). No lag may be a multiple of
-    #: 3 (see :func:`_column_groups`).
+    #: over 10; height 1.3 and 4 mm; roll 0.006 and 0.011 deg).
     ground_lags: tuple[int, ...] = (1, 10)
     ground_sigma_a: tuple[float, float, float] = (0.0015, 0.005 * DEG, 0.001 * DEG)
     ground_sigma_b: tuple[float, float, float] = (0.0003, 0.0006 * DEG, 0.0003 * DEG)
@@ -160,7 +159,6 @@ class Problem:
     w_odo_r: F64  # (n-1,) 1/sigma
     ins_k: NDArray[np.int64]  # frames with an INS record
     p_ins: F64  # (m, 3) nominal INS positions (jumps removed)
-    v_ins: F64  # (m, 3) INS velocities
     R_ins: F64  # (m, 3, 3) nominal INS rotations
     w_ins: F64  # (m, 3) angular rate (world, rad/s)
     rail: dict | None  # linearised rail constraint or None
@@ -499,7 +497,6 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         w_odo_r=w_r,
         ins_k=k,
         p_ins=p_ins_all[k],
-        v_ins=ins.v_world[k],
         R_ins=R_ins_all[k],
         w_ins=_rotvec_rates(R_ins_all, inp.times)[k],
         rail=rail,
@@ -516,29 +513,15 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     )
 
 
-def _stored_points(inp: LocalizationInput, frame: int) -> NDArray[np.floating]:
-    """(m, 3) base points of a frame: the shared float32 cloud as stored when there is one
-    (no float64 copy of the whole cloud), else read."""
-    shared = inp.options.get("_frame_clouds")
-    if shared is None:
-        return read_points(inp, frame)
-    try:
-        return shared.get(frame).p_base32
-    except Exception:  # unreadable: read_points warns and gives an empty cloud
-        return read_points(inp, frame)
-
-
 def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> dict | None:
     """Ground pairs over the odometry's relative poses as residual data (or None)."""
-    if any(lag % 3 == 0 for lag in sig.ground_lags):
-        raise ValueError(f"ground lags {sig.ground_lags}: none may be a multiple of 3")
     try:
         run = odometry_run(inp)
     except Exception as exc:
         health.warn(f"fused: no ground pairs (odometry unavailable: {exc})")
         return None
     skipped = set(run.skipped)
-    points = [_stored_points(inp, f) for f in inp.frames]
+    points = [read_points(inp, f, stored=True) for f in inp.frames]
     pairs = [
         pr
         for pr in ground_pairs(points, run.T_odom_base, sig.ground_lags)
@@ -607,18 +590,31 @@ def _heading_change_deg(R_world_base: F64) -> float:
     return float(np.degrees(np.ptp(yaw))) if len(yaw) else 0.0
 
 
-def _column_groups(n: int, n_knots: int) -> list[NDArray[np.int64]]:
+def _frame_period(pb: Problem) -> int:
+    """The smallest period P >= 3 such that no residual row touches two frames a multiple
+    of P apart: rows link frames 1 and 2 apart (odometry, smoothness) and the ground pairs'
+    lags."""
+    gaps = {1, 2}
+    if pb.ground is not None:
+        gaps |= {int(d) for d in np.unique(pb.ground["j"] - pb.ground["k"])}
+    period = 3
+    while any(d % period == 0 for d in gaps):
+        period += 1
+    return period
+
+
+def _column_groups(n: int, n_knots: int, period: int = 3) -> list[NDArray[np.int64]]:
     """Columns that share no residual row (finite differences in one evaluation each).
 
-    A residual row touches at most three consecutive frames, the misalignment and two
-    consecutive bias knots, so frame columns with the same (frame mod 3, component) go
-    together, as do knot columns with the same (knot mod 3, component); the 7 misalignment
-    columns each stand alone.
+    A residual row touches frames that are never a multiple of ``period`` apart
+    (:func:`_frame_period`), the misalignment and two consecutive bias knots, so frame
+    columns with the same (frame mod period, component) go together, as do knot columns
+    with the same (knot mod 3, component); the 7 misalignment columns each stand alone.
     """
     groups = []
-    for phase in range(3):
+    for phase in range(period):
         for comp in range(6):
-            frames = np.arange(phase, n, 3)
+            frames = np.arange(phase, n, period)
             if len(frames):
                 groups.append(6 * frames + comp)
     groups.extend(np.array([6 * n + j]) for j in range(7))
@@ -658,7 +654,7 @@ def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
     """
     x = np.zeros(_n_params(pb.n, pb.n_knots)) if x0 is None else x0.copy()
     S = sparsity(pb)
-    groups = _column_groups(pb.n, pb.n_knots)
+    groups = _column_groups(pb.n, pb.n_knots, _frame_period(pb))
     c = pb.sig.huber
     for _ in range(max_iter):
         r = residuals(x, pb)

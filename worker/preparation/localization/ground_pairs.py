@@ -87,17 +87,35 @@ def frame_ground(points_base: NDArray[np.floating]) -> FrameGround:
     nx_grid, ny_grid = _grid_shape()
     if len(p) == 0:
         return FrameGround(np.zeros((0, 3)), np.full((nx_grid, ny_grid), np.nan))
-    ci = ((p[:, 0] - BOX_X[0]) / COLUMN_M).astype(np.int64)
-    cj = ((p[:, 1] - BOX_Y[0]) / COLUMN_M).astype(np.int64)
-    n_cj = int(np.ceil((BOX_Y[1] - BOX_Y[0]) / COLUMN_M))
-    col = ci * n_cj + cj
-    z_min = np.full(int(col.max()) + 1, np.inf)
-    np.minimum.at(z_min, col, p[:, 2])
-    g = p[p[:, 2] < z_min[col] + GROUND_BAND_M]
+    g = p[p[:, 2] < column_floor(p, COLUMN_M) + GROUND_BAND_M]
     grid = _height_grid(g)
     if len(g) > MAX_POINTS:
         g = g[:: int(np.ceil(len(g) / MAX_POINTS))]
     return FrameGround(g, grid)
+
+
+def column_floor(points: NDArray[np.floating], cell: float) -> F64:
+    """(n,) height of the lowest point in each point's ``cell`` x ``cell`` m column.
+
+    points : (n, 3); columns are cells of the x-y plane (any extent: a dense table of the
+    columns when it is small, else the occupied ones only).
+    """
+    if len(points) == 0:
+        return np.zeros(0)
+    i = np.floor(points[:, 0] / cell).astype(np.int64)
+    j = np.floor(points[:, 1] / cell).astype(np.int64)
+    i -= i.min()
+    j -= j.min()
+    col = i * (int(j.max()) + 1) + j
+    if int(col.max()) < max(4 * len(col), 1 << 16):
+        size = int(col.max()) + 1
+    else:
+        _, col = np.unique(col, return_inverse=True)
+        col = col.reshape(-1)
+        size = int(col.max()) + 1
+    z_min = np.full(size, np.inf)
+    np.minimum.at(z_min, col, points[:, 2])
+    return z_min[col]
 
 
 def _grid_shape() -> tuple[int, int]:

@@ -34,6 +34,7 @@ from worker.preparation.localization.common import (
     travelled,
     travelled_robust,
 )
+from worker.preparation.localization.ground_pairs import column_floor
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -98,16 +99,18 @@ def _kiss_config(inp: LocalizationInput):
     return cfg
 
 
-def read_points(inp: LocalizationInput, frame: int) -> F64:
+def read_points(inp: LocalizationInput, frame: int, stored: bool = False) -> NDArray:
     """(m, 3) finite float64 base points of one frame (empty on an unreadable cloud).
 
     Uses the preparation's shared FrameClouds (``inp.options["_frame_clouds"]``) when there
-    is one, so each PCD is read once per preparation.
+    is one, so each PCD is read once per preparation; ``stored``: its float32 array as
+    stored (no float64 copy of the whole cloud, for readers that thin it first).
     """
     shared = inp.options.get("_frame_clouds")
     if shared is not None:
         try:
-            return shared.get(frame).p_base
+            fc = shared.get(frame)
+            return fc.p_base32 if stored else fc.p_base
         except Exception as exc:
             log.warning("frame %d: cloud unreadable (%s); skipped by odometry", frame, exc)
             return np.zeros((0, 3))
@@ -135,13 +138,7 @@ def remove_ground(
     """
     if len(points_base) == 0:
         return points_base
-    ij = np.floor(points_base[:, :2] / cell).astype(np.int64)
-    ij -= ij.min(axis=0)
-    _, inv = np.unique(ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1], return_inverse=True)
-    inv = inv.reshape(-1)
-    z_min = np.full(int(inv.max()) + 1, np.inf)
-    np.minimum.at(z_min, inv, points_base[:, 2])
-    return points_base[points_base[:, 2] > z_min[inv] + height]
+    return points_base[points_base[:, 2] > column_floor(points_base, cell) + height]
 
 
 def information(points_base: F64) -> tuple[float, float]:
