@@ -113,7 +113,8 @@ def register_clouds(
     One point per world voxel is kept: the first in (frame order, point order), i.e. the
     same result as :func:`voxel_keep` on the concatenation, computed frame by frame (a
     per-frame unique, then a sorted array of the voxels already taken) so memory stays
-    linear in the number of kept points.
+    linear in the number of kept points. (With ``max_range`` None, points beyond the span
+    the keys were sized for share the border voxels.)
 
     Parameters
     ----------
@@ -227,8 +228,10 @@ class _VoxelSet:
     Keys are the voxel indices relative to a corner below the whole trajectory, packed into
     one int64 (21 bits per axis) when the sequence spans fewer than 2^21 voxels per axis,
     else the three int64 indices viewed as one 24-byte value (both sort and search the
-    same way). Each frame adds its new keys with one ``searchsorted`` and one ``insert``:
-    time linear in the cloud per frame, memory one key per kept point.
+    same way). Each frame adds its new keys with one ``searchsorted`` and one ``insert``,
+    which copies the keys taken so far: time per frame linear in the frame's cloud plus the
+    kept points (fine for the few dozen frames of a registration), memory one key per kept
+    point.
     """
 
     def __init__(self, voxel_size: float, T_all: F64, max_range: float | None) -> None:
