@@ -83,3 +83,22 @@ def test_column_floor_is_each_columns_lowest_point() -> None:
             same = np.all(cols == c, axis=1)
             assert np.all(got[same] == cloud[same, 2].min())
     assert column_floor(np.zeros((0, 3)), 1.0).shape == (0,)
+
+
+def test_odometry_keeps_each_frames_ground_from_its_own_column_floors() -> None:
+    """The odometry loop hands its column floors to frame_ground: the same ground as computed
+    from scratch, and the points it registers are the rest (above the ground band)."""
+    from worker.preparation.localization.ground_pairs import COLUMN_M, column_floor
+    from worker.preparation.localization.odometry import remove_ground
+
+    rng = np.random.default_rng(8)
+    p = _frame_points(_pose((0.0, 0.0, 0.0), (0.1, -0.3, 5.0)), rng)
+    floor = column_floor(p, COLUMN_M)
+    shared, own = frame_ground(p, floor), frame_ground(p)
+    assert np.array_equal(shared.points, own.points)
+    assert np.array_equal(shared.grid, own.grid, equal_nan=True)
+    assert len(own.points) > 1000
+    above = remove_ground(p, floor)
+    assert np.array_equal(above, remove_ground(p))
+    # What KISS-ICP registers is the poles (900 points, 0-6 m tall) above the 20 cm band.
+    assert 800 < len(above) <= 900

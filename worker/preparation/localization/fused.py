@@ -70,7 +70,6 @@ from worker.preparation.localization.odometry import (
     odometry_deltas,
     odometry_run,
     odometry_track,
-    read_points,
 )
 from worker.preparation.localization.rails import orientation_noise, rail_frames
 
@@ -521,10 +520,9 @@ def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> 
         health.warn(f"fused: no ground pairs (odometry unavailable: {exc})")
         return None
     skipped = set(run.skipped)
-    points = [read_points(inp, f, stored=True) for f in inp.frames]
     pairs = [
         pr
-        for pr in ground_pairs(points, run.T_odom_base, sig.ground_lags)
+        for pr in ground_pairs(run.grounds, run.T_odom_base, sig.ground_lags)
         if pr.k not in skipped and pr.j not in skipped
     ]
     health.metrics["fused_ground_pairs"] = float(len(pairs))
@@ -646,6 +644,14 @@ def jacobian(x: F64, r0: F64, pb: Problem, S: csc_matrix, groups: list) -> csc_m
     )
 
 
+#: Gauss-Newton stops once no parameter moves by more than this (m, rad, s: 10 um, 2e-4 deg
+#: - 0.5 mm at 50 m); the Jacobian is kept from the previous iteration once the step is
+#: below ``REUSE_JACOBIAN_STEP`` (the problem is nearly linear there: the reused Jacobian
+#: slows convergence only by a few decimals, each new one costs ~43 residual evaluations).
+STEP_TOL = 1e-5
+REUSE_JACOBIAN_STEP = 1e-3
+
+
 def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
     """Gauss-Newton with Huber weights (IRLS) on the sparse problem; the parameter vector.
 
@@ -656,9 +662,11 @@ def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
     S = sparsity(pb)
     groups = _column_groups(pb.n, pb.n_knots, _frame_period(pb))
     c = pb.sig.huber
+    J, step = None, np.inf
     for _ in range(max_iter):
         r = residuals(x, pb)
-        J = jacobian(x, r, pb, S, groups)
+        if J is None or step >= REUSE_JACOBIAN_STEP:
+            J = jacobian(x, r, pb, S, groups)
         a = np.abs(r)
         w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
         JtW = J.T.multiply(w[None, :]).tocsc()
@@ -667,7 +675,8 @@ def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
         if not np.all(np.isfinite(dx)):
             raise FloatingPointError("non-finite Gauss-Newton step")
         x = x + dx
-        if np.max(np.abs(dx)) < 1e-7:
+        step = float(np.max(np.abs(dx)))
+        if step < STEP_TOL:
             break
     return x
 

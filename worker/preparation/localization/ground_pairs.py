@@ -75,9 +75,16 @@ class GroundPair:
     rms_m: float
 
 
-def frame_ground(points_base: NDArray[np.floating]) -> FrameGround:
-    """Ground points and height grid of one frame (points (n, 3) in its base frame; float32
-    clouds are used as stored)."""
+def frame_ground(points_base: NDArray[np.floating], floor: F64 | None = None) -> FrameGround:
+    """Ground points and height grid of one frame.
+
+    points_base : (n, 3) the frame's cloud in its base frame (float32 clouds used as stored).
+    floor : (n,) ``column_floor(points_base, COLUMN_M)`` (the lowest point of each point's
+        column) when the caller has it already: the odometry's ground removal computes it
+        for every frame. Computed here otherwise.
+    """
+    if floor is None:
+        floor = column_floor(points_base, COLUMN_M)
     # Every STRIDE-th point: the ground is sampled far more densely than a 0.5 m grid needs.
     p = np.asarray(points_base[::STRIDE], dtype=np.float64)
     inside = (
@@ -87,7 +94,8 @@ def frame_ground(points_base: NDArray[np.floating]) -> FrameGround:
     nx_grid, ny_grid = _grid_shape()
     if len(p) == 0:
         return FrameGround(np.zeros((0, 3)), np.full((nx_grid, ny_grid), np.nan))
-    g = p[p[:, 2] < column_floor(p, COLUMN_M) + GROUND_BAND_M]
+    floor = floor[::STRIDE][inside]
+    g = p[p[:, 2] < floor + GROUND_BAND_M]
     grid = _height_grid(g)
     if len(g) > MAX_POINTS:
         g = g[:: int(np.ceil(len(g) / MAX_POINTS))]
@@ -193,17 +201,16 @@ def _small_rotation(roll: float, pitch: float) -> F64:
 
 
 def ground_pairs(
-    points_base: list[NDArray[np.floating]], T_odom_base: F64, lags: tuple[int, ...]
+    grounds: list[FrameGround], T_odom_base: F64, lags: tuple[int, ...]
 ) -> list[GroundPair]:
     """Ground corrections of the odometry's relative poses for every pair (k, k + lag).
 
     Parameters
     ----------
-    points_base : per frame its (m, 3) cloud in its base frame.
+    grounds : per frame its :func:`frame_ground`.
     T_odom_base : (n, 4, 4) the odometry's poses.
     lags : frame offsets of the pairs.
     """
-    grounds = [frame_ground(p) for p in points_base]
     out = []
     n = len(grounds)
     for lag in lags:

@@ -34,7 +34,12 @@ from worker.preparation.localization.common import (
     travelled,
     travelled_robust,
 )
-from worker.preparation.localization.ground_pairs import column_floor
+from worker.preparation.localization.ground_pairs import (
+    COLUMN_M,
+    FrameGround,
+    column_floor,
+    frame_ground,
+)
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -45,7 +50,7 @@ MAX_RANGE_M = 100.0
 MIN_RANGE_M = 1.0
 VOXEL_SIZE_M = 0.5
 #: Ground removal: grid cell (m) and height above the cell's lowest point (m).
-GROUND_CELL_M = 1.0
+GROUND_CELL_M = COLUMN_M  # 1 m: the ground pairs' columns, one floor serves both
 GROUND_HEIGHT_M = 0.2
 #: Fewer points than this in a frame: the frame is skipped (constant-velocity prediction).
 MIN_POINTS = 100
@@ -74,6 +79,8 @@ class OdometryRun:
     skipped : frame positions that had too few points.
     clouds : per frame the (m, 3) base points used for registration (subsampled), reused
         by ``auto``'s map-consistency check without reading the PCDs again.
+    grounds : per frame its ground (:func:`~.ground_pairs.frame_ground`), taken from the
+        column floors the ground removal computes anyway, for ``fused``'s ground pairs.
     seconds : wall time of the run (reading + KISS-ICP + diagnostics).
     """
 
@@ -83,6 +90,7 @@ class OdometryRun:
     n_points: NDArray[np.int64]
     skipped: list[int] = field(default_factory=list)
     clouds: list[F64] = field(default_factory=list)
+    grounds: list[FrameGround] = field(default_factory=list)
     seconds: float = 0.0
     kiss_seconds: float = 0.0
 
@@ -123,10 +131,8 @@ def read_points(inp: LocalizationInput, frame: int, stored: bool = False) -> NDA
     return p[np.all(np.isfinite(p), axis=1)]
 
 
-def remove_ground(
-    points_base: F64, cell: float = GROUND_CELL_M, height: float = GROUND_HEIGHT_M
-) -> F64:
-    """Points more than ``height`` above the lowest point of their ``cell`` x ``cell`` column.
+def remove_ground(points_base: F64, floor: F64 | None = None) -> F64:
+    """Points more than GROUND_HEIGHT_M above the lowest point of their GROUND_CELL_M column.
 
     The ground, ballast and rails are sampled by the lidars in the same pattern every frame
     (fixed in the base frame), which pulls point-to-point ICP towards zero motion; only the
@@ -135,10 +141,13 @@ def remove_ground(
     Parameters
     ----------
     points_base : (m, 3) base points. Returns (k, 3).
+    floor : (m,) ``column_floor(points_base, GROUND_CELL_M)`` if the caller has it.
     """
     if len(points_base) == 0:
         return points_base
-    return points_base[points_base[:, 2] > column_floor(points_base, cell) + height]
+    if floor is None:
+        floor = column_floor(points_base, GROUND_CELL_M)
+    return points_base[points_base[:, 2] > floor + GROUND_HEIGHT_M]
 
 
 def information(points_base: F64) -> tuple[float, float]:
@@ -192,9 +201,14 @@ def run_kiss_icp(inp: LocalizationInput) -> OdometryRun:
     n_points = np.zeros(n, dtype=np.int64)
     skipped: list[int] = []
     clouds: list[F64] = []
+    grounds: list[FrameGround] = []
     kiss_seconds = 0.0
     for k, frame in enumerate(inp.frames):
-        p = remove_ground(read_points(inp, frame))
+        p = read_points(inp, frame)
+        # One column floor for both: the ground removal (remove_ground) and the ground.
+        floor = column_floor(p, GROUND_CELL_M)
+        grounds.append(frame_ground(p, floor))
+        p = remove_ground(p, floor)
         n_points[k] = len(p)
         tic = time.perf_counter()
         if len(p) < MIN_POINTS:
@@ -213,8 +227,9 @@ def run_kiss_icp(inp: LocalizationInput) -> OdometryRun:
         log.warning("KISS-ICP returned non-finite poses; replaced by identity motion")
         T = _repair_nonfinite(T)
     return OdometryRun(
-        T, along, lateral, n_points, skipped, clouds, time.perf_counter() - started, kiss_seconds
-    )
+        T, along, lateral, n_points, skipped, clouds, grounds,
+        time.perf_counter() - started, kiss_seconds,
+    )  # fmt: skip
 
 
 def _repair_nonfinite(T: F64) -> F64:
