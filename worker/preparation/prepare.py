@@ -28,7 +28,6 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import Executor, ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -186,26 +185,12 @@ def run_preparation(
     key: str = "",
 ) -> PreparedSequence:
     """Run the preparation recipe (module docstring) in memory; writes nothing."""
-    config = config or PrepareConfig()
-    tune_malloc()  # big arrays reuse freed pages (worker/malloc_tuning.py)
-    # One worker thread for work that can run beside the recipe's main line (a 2-core
-    # machine: KISS-ICP uses both, the stages after it one).
-    with ThreadPoolExecutor(1, thread_name_prefix="preparation") as background:
-        return _run_recipe(sequence, config, clicks, progress, key, background)
-
-
-def _run_recipe(
-    sequence: Sequence | str | Path,
-    config: PrepareConfig,
-    clicks: Clicks | str | Path | None,
-    progress: Progress | None,
-    key: str,
-    background: Executor,
-) -> PreparedSequence:
-    from worker.preparation.localization import odometry_track, prefetch, run_strategy
+    from worker.preparation.localization import odometry_track, run_strategy
     from worker.preparation.localization.common import make_input
     from worker.preparation.tracks import find_tracks
 
+    config = config or PrepareConfig()
+    tune_malloc()  # big arrays reuse freed pages (worker/malloc_tuning.py)
     stage = _Stages(progress)
     t_start = time.perf_counter()
     warnings: list[str] = []
@@ -236,8 +221,6 @@ def _run_recipe(
 
     with stage("odometry"):
         odo_track, odo_health = odometry_track(inp)
-        # What the strategy needs from the odometry alone runs beside the next two stages.
-        prefetch(config.strategy, inp, background)
 
     with stage("pre_registration"):
         use_odo = reg.pre_poses == "odometry" and odo_health.fallback is None

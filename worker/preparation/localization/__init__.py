@@ -9,8 +9,6 @@ extraction). Every strategy is in its own module: ``ins``, ``odometry``, ``rails
 
 from __future__ import annotations
 
-from concurrent.futures import Executor
-
 from worker.preparation.localization.base import (
     Health,
     LocalizationInput,
@@ -31,7 +29,6 @@ __all__ = [
     "get_strategy",
     "make_input",
     "odometry_track",
-    "prefetch",
     "run_strategy",
 ]
 
@@ -64,13 +61,3 @@ def get_strategy(name: str) -> Strategy:
 def run_strategy(name: str, inp: LocalizationInput) -> LocalizationResult:
     """Run strategy ``name`` on ``inp`` (poses at every frame's lidar time, finite)."""
     return get_strategy(name).run(inp)
-
-
-def prefetch(name: str, inp: LocalizationInput, pool: Executor) -> None:
-    """Start on ``pool`` what strategy ``name`` will need from the odometry alone (the
-    ground pairs of ``fused``, also a candidate of ``auto``), so that it runs while the
-    preparation finds the rails; the strategy picks it up from ``inp``."""
-    if name in ("fused", "auto"):
-        from worker.preparation.localization.fused import prefetch_ground_pairs
-
-        prefetch_ground_pairs(inp, pool)

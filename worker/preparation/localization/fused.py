@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,7 +62,7 @@ from worker.preparation.localization.common import (
     poses_from,
     remove_jumps,
 )
-from worker.preparation.localization.ground_pairs import GroundPair, ground_pairs
+from worker.preparation.localization.ground_pairs import ground_pairs
 from worker.preparation.localization.ins_wander import ins_wander
 from worker.preparation.localization.odometry import (
     degenerate_frames,
@@ -513,35 +512,19 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     )
 
 
-def prefetch_ground_pairs(
-    inp: LocalizationInput, pool: Executor, lags: tuple[int, ...] = Sigmas().ground_lags
-) -> None:
-    """Start the ground pairs on ``pool``: they need the odometry only, so they can run
-    while the preparation registers the cloud and finds the rails the strategy needs."""
-    inp.options["_ground_pairs"] = (tuple(lags), pool.submit(_odometry_ground_pairs, inp, lags))
-
-
-def _odometry_ground_pairs(inp: LocalizationInput, lags: tuple[int, ...]) -> list[GroundPair]:
-    run = odometry_run(inp)
-    skipped = set(run.skipped)
-    return [
-        pr
-        for pr in ground_pairs(run.grounds, run.T_odom_base, lags)
-        if pr.k not in skipped and pr.j not in skipped
-    ]
-
-
 def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> dict | None:
     """Ground pairs over the odometry's relative poses as residual data (or None)."""
-    started = inp.options.get("_ground_pairs")
     try:
-        if started is not None and started[0] == tuple(sig.ground_lags):
-            pairs = started[1].result()
-        else:
-            pairs = _odometry_ground_pairs(inp, tuple(sig.ground_lags))
+        run = odometry_run(inp)
     except Exception as exc:
-        health.warn(f"fused: no ground pairs ({exc})")
+        health.warn(f"fused: no ground pairs (odometry unavailable: {exc})")
         return None
+    skipped = set(run.skipped)
+    pairs = [
+        pr
+        for pr in ground_pairs(run.grounds, run.T_odom_base, sig.ground_lags)
+        if pr.k not in skipped and pr.j not in skipped
+    ]
     health.metrics["fused_ground_pairs"] = float(len(pairs))
     if not pairs:
         health.warn("fused: no ground seen in common by frame pairs; height and pitch drift")

@@ -18,9 +18,7 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import partial
 
 import numpy as np
 import open3d as o3d
@@ -42,7 +40,6 @@ from worker.preparation.localization.ground_pairs import (
     column_floor,
     frame_ground,
 )
-from worker.read_ahead import read_ahead
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -191,23 +188,8 @@ def _subsample(p: F64, k: int, rng: np.random.Generator) -> F64:
     return p[np.sort(rng.choice(len(p), k, replace=False))]
 
 
-def _frame_input(inp: LocalizationInput, frame: int) -> tuple[F64, FrameGround]:
-    """One frame's points for KISS-ICP (its ground removed) and its ground.
-
-    One column floor serves both: the ground removal and the ground pairs' ground.
-    """
-    p = read_points(inp, frame)
-    floor = column_floor(p, GROUND_CELL_M)
-    return remove_ground(p, floor), frame_ground(p, floor)
-
-
 def run_kiss_icp(inp: LocalizationInput) -> OdometryRun:
-    """KISS-ICP over the frames in time order (no memoisation; see :func:`odometry_track`).
-
-    KISS-ICP registers the frames one after another on this thread; a worker thread reads
-    the next clouds and removes their ground meanwhile (:func:`~worker.read_ahead.read_ahead`)
-    and computes each frame's along-track information once it is registered.
-    """
+    """KISS-ICP over the frames in time order (no memoisation; see :func:`odometry_track`)."""
     from kiss_icp.kiss_icp import KissICP
 
     started = time.perf_counter()
@@ -215,32 +197,32 @@ def run_kiss_icp(inp: LocalizationInput) -> OdometryRun:
     rng = np.random.default_rng(0)
     n = len(inp.frames)
     T = np.tile(np.eye(4), (n, 1, 1))
+    along, lateral = np.zeros(n), np.zeros(n)
     n_points = np.zeros(n, dtype=np.int64)
     skipped: list[int] = []
     clouds: list[F64] = []
     grounds: list[FrameGround] = []
-    infos: list[Future[tuple[float, float]]] = []
     kiss_seconds = 0.0
-    with ThreadPoolExecutor(1, thread_name_prefix="odometry") as pool:
-        frames = read_ahead(partial(_frame_input, inp), inp.frames, pool=pool)
-        for k, (p, ground) in enumerate(frames):
-            grounds.append(ground)
-            n_points[k] = len(p)
-            tic = time.perf_counter()
-            if len(p) < MIN_POINTS:
-                skipped.append(k)
-                # Constant-velocity prediction, as KISS-ICP would start from.
-                kiss.last_pose = kiss.last_pose @ kiss.last_delta
-                source = np.zeros((0, 3))
-            else:
-                _, source = kiss.register_frame(p, np.zeros(len(p)))
-            kiss_seconds += time.perf_counter() - tic
-            T[k] = kiss.last_pose
-            sub = _subsample(np.asarray(source, dtype=np.float64), INFO_MAX_POINTS, rng)
-            infos.append(pool.submit(information, sub))
-            clouds.append(sub)
-        along = np.array([f.result()[0] for f in infos], dtype=np.float64).reshape(n)
-        lateral = np.array([f.result()[1] for f in infos], dtype=np.float64).reshape(n)
+    for k, frame in enumerate(inp.frames):
+        p = read_points(inp, frame)
+        # One column floor for both: the ground removal (remove_ground) and the ground.
+        floor = column_floor(p, GROUND_CELL_M)
+        grounds.append(frame_ground(p, floor))
+        p = remove_ground(p, floor)
+        n_points[k] = len(p)
+        tic = time.perf_counter()
+        if len(p) < MIN_POINTS:
+            skipped.append(k)
+            # Constant-velocity prediction, as KISS-ICP would start from.
+            kiss.last_pose = kiss.last_pose @ kiss.last_delta
+            source = np.zeros((0, 3))
+        else:
+            _, source = kiss.register_frame(p, np.zeros(len(p)))
+        kiss_seconds += time.perf_counter() - tic
+        T[k] = kiss.last_pose
+        sub = _subsample(np.asarray(source, dtype=np.float64), INFO_MAX_POINTS, rng)
+        along[k], lateral[k] = information(sub)
+        clouds.append(sub)
     if not np.all(np.isfinite(T)):
         log.warning("KISS-ICP returned non-finite poses; replaced by identity motion")
         T = _repair_nonfinite(T)
