@@ -412,6 +412,19 @@ def _end_state(pts: F64, tail: float) -> tuple[float, float, float]:
     return float(heading), kappa, grade
 
 
+#: The stretch at a track's end the follower fits its next step to (m).
+TAIL_SPAN_M = 40.0
+
+
+def _last_stretch(pts: F64, roll: F64, span: float) -> tuple[F64, F64]:
+    """The knots (k, 3) and roll (k,) of the last ``span`` metres of a polyline (and one
+    knot before them)."""
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    back = np.cumsum(seg[::-1])  # distance from the last knot back to each earlier one
+    keep = int(np.searchsorted(back, span)) + 2
+    return pts[-keep:], roll[-keep:]
+
+
 def _extend_forward(
     rails: _RailPoints,
     pts: F64,
@@ -431,13 +444,16 @@ def _extend_forward(
     gap = 0.0
     last_supported = len(pts)
     for _ in range(int(2 * (lookahead + 60.0) / opt.follow_step) + 4):
+        # Only the end of the track matters here: a spline through its last TAIL_SPAN_M
+        # (knots further back move its end by less than 1e-6 of their change).
+        tp, tr = _last_stretch(pts, roll, TAIL_SPAN_M)
         try:
-            cl = Centreline(pts, roll)
+            cl = Centreline(tp, tr)
         except ValueError:
             break
         L = cl.length
         tail = min(L, 20.0)
-        h0, kappa, grade = _end_state(pts, tail)
+        h0, kappa, grade = _end_state(tp, tail)
         u = np.arange(0.5, opt.follow_step + 1e-9, 0.5)
         # integrate heading (midpoint rule) for the horizontal arc
         du = np.diff(np.concatenate([[0.0], u]))
