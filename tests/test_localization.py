@@ -444,3 +444,42 @@ def test_solve_with_reused_jacobian_reaches_the_full_newton_solution(
     assert d[: 6 * n].max() < 1e-5
     assert d[6 * n :].max() < 1e-3
     assert fast_calls < calls["n"]
+
+
+def test_kiss_icp_in_a_child_process_gives_the_in_process_poses(
+    seqs: dict, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The odometry runs KISS-ICP in a child process (kiss_process.py): the same poses as
+    in this process (to 1e-9 m / rad), close to the true relative motion; and when the
+    child cannot start, a warning and the in-process run."""
+    import worker.preparation.localization.odometry as od
+    from worker.preparation.kiss_process import KissProcessError
+
+    folder = seqs["fire_site"]
+    child = od.run_kiss_icp(_input(folder))
+    inproc = od.run_kiss_icp(make_input(Sequence.open(folder), options={"odometry_process": False}))
+    assert np.abs(child.T_odom_base - inproc.T_odom_base).max() < 1e-9
+    assert np.array_equal(child.along_info, inproc.along_info)
+    assert [len(c) for c in child.clouds] == [len(c) for c in inproc.clouds]
+    gt = PoseTrack.from_csv(folder / "ground_truth/poses.csv")
+    step_true = np.linalg.norm(relative_motions(gt.T)[:, :3, 3], axis=1)
+    step_odo = np.linalg.norm(relative_motions(child.T_odom_base)[:, :3, 3], axis=1)
+    assert np.median(np.abs(step_odo - np.median(step_true))) < 0.05  # m per frame
+
+    def no_child(settings: dict) -> None:
+        raise KissProcessError("cannot start the KISS-ICP process: test")
+
+    monkeypatch.setattr(od, "KissProcess", no_child)
+    with caplog.at_level("WARNING"):
+        fallback = od.run_kiss_icp(_input(folder))
+    assert "running KISS-ICP in this process" in caplog.text
+    assert np.abs(fallback.T_odom_base - inproc.T_odom_base).max() < 1e-9
+
+
+def test_kiss_process_reports_a_dead_child() -> None:
+    from worker.preparation.kiss_process import KissProcess, KissProcessError
+
+    with KissProcess({"voxel_size": 0.5}) as child:  # settings it cannot use: it exits
+        with pytest.raises(KissProcessError, match=r"closed its output|KISS-ICP process gone"):
+            child.send(np.zeros((200, 3)))
+            child.receive()

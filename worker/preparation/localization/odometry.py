@@ -19,12 +19,18 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
 from worker.poses import PoseTrack
+from worker.preparation.kiss_process import (
+    KissProcess,
+    KissProcessError,
+    kiss_settings,
+)
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
 from worker.preparation.localization.common import (
     ins_at_frames,
@@ -188,12 +194,61 @@ def _subsample(p: F64, k: int, rng: np.random.Generator) -> F64:
     return p[np.sort(rng.choice(len(p), k, replace=False))]
 
 
-def run_kiss_icp(inp: LocalizationInput) -> OdometryRun:
-    """KISS-ICP over the frames in time order (no memoisation; see :func:`odometry_track`)."""
-    from kiss_icp.kiss_icp import KissICP
+class _InProcess:
+    """KISS-ICP in this process, with :class:`~.kiss_process.KissProcess`'s interface."""
 
+    def __init__(self, cfg: Any) -> None:
+        from kiss_icp.kiss_icp import KissICP
+
+        self.kiss = KissICP(cfg)
+        self.out: tuple[F64, F64] = (np.eye(4), np.zeros((0, 3)))
+
+    def send(self, points: F64) -> None:
+        if len(points) == 0:
+            # Constant-velocity prediction, as KISS-ICP would start from.
+            self.kiss.last_pose = self.kiss.last_pose @ self.kiss.last_delta
+            source = np.zeros((0, 3))
+        else:
+            _, source = self.kiss.register_frame(points, np.zeros(len(points)))
+        self.out = (np.array(self.kiss.last_pose, dtype=np.float64), source)
+
+    def receive(self) -> tuple[F64, F64]:
+        return self.out
+
+
+def _frame_input(inp: LocalizationInput, frame: int) -> tuple[F64, FrameGround]:
+    """One frame's points for KISS-ICP (its ground removed) and its ground.
+
+    One column floor serves both: the ground removal and the ground pairs' ground.
+    """
+    p = read_points(inp, frame)
+    floor = column_floor(p, GROUND_CELL_M)
+    return remove_ground(p, floor), frame_ground(p, floor)
+
+
+def run_kiss_icp(inp: LocalizationInput) -> OdometryRun:
+    """KISS-ICP over the frames in time order (no memoisation; see :func:`odometry_track`).
+
+    KISS-ICP runs in a child process (:mod:`worker.preparation.kiss_process`; option
+    ``odometry_process``, default True) while this one reads and splits the next cloud;
+    in this process when the option is off or the child fails (with a warning; the poses
+    are the same).
+    """
     started = time.perf_counter()
-    kiss = KissICP(_kiss_config(inp))
+    cfg = _kiss_config(inp)
+    if inp.options.get("odometry_process", True):
+        try:
+            with KissProcess(kiss_settings(cfg)) as child:
+                return _run_frames(inp, child, started)
+        except KissProcessError as exc:
+            log.warning("odometry: %s; running KISS-ICP in this process", exc)
+            started = time.perf_counter()
+    return _run_frames(inp, _InProcess(cfg), started)
+
+
+def _run_frames(inp: LocalizationInput, kiss: Any, started: float) -> OdometryRun:
+    """The frames through ``kiss`` (send / receive), each frame's input prepared while the
+    previous one registers. ``kiss_seconds`` is the time spent waiting for KISS-ICP."""
     rng = np.random.default_rng(0)
     n = len(inp.frames)
     T = np.tile(np.eye(4), (n, 1, 1))
@@ -203,26 +258,26 @@ def run_kiss_icp(inp: LocalizationInput) -> OdometryRun:
     clouds: list[F64] = []
     grounds: list[FrameGround] = []
     kiss_seconds = 0.0
-    for k, frame in enumerate(inp.frames):
-        p = read_points(inp, frame)
-        # One column floor for both: the ground removal (remove_ground) and the ground.
-        floor = column_floor(p, GROUND_CELL_M)
-        grounds.append(frame_ground(p, floor))
-        p = remove_ground(p, floor)
-        n_points[k] = len(p)
+    for k in range(n + 1):
+        p = None
+        if k < n:
+            p, ground = _frame_input(inp, inp.frames[k])  # while KISS-ICP registers k - 1
+            grounds.append(ground)
+            n_points[k] = len(p)
+            if len(p) < MIN_POINTS:
+                skipped.append(k)
+                p = np.zeros((0, 3))
+        source = None
         tic = time.perf_counter()
-        if len(p) < MIN_POINTS:
-            skipped.append(k)
-            # Constant-velocity prediction, as KISS-ICP would start from.
-            kiss.last_pose = kiss.last_pose @ kiss.last_delta
-            source = np.zeros((0, 3))
-        else:
-            _, source = kiss.register_frame(p, np.zeros(len(p)))
+        if k > 0:
+            T[k - 1], source = kiss.receive()
+        if p is not None:
+            kiss.send(p)
         kiss_seconds += time.perf_counter() - tic
-        T[k] = kiss.last_pose
-        sub = _subsample(np.asarray(source, dtype=np.float64), INFO_MAX_POINTS, rng)
-        along[k], lateral[k] = information(sub)
-        clouds.append(sub)
+        if source is not None:  # frame k - 1's checks, while KISS-ICP registers k
+            sub = _subsample(np.asarray(source, dtype=np.float64), INFO_MAX_POINTS, rng)
+            along[k - 1], lateral[k - 1] = information(sub)
+            clouds.append(sub)
     if not np.all(np.isfinite(T)):
         log.warning("KISS-ICP returned non-finite poses; replaced by identity motion")
         T = _repair_nonfinite(T)

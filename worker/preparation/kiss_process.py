@@ -1,0 +1,165 @@
+"""KISS-ICP in a child process, fed one frame at a time over pipes.
+
+kiss-icp's Python binding keeps the GIL while it registers a frame (measured: a second
+thread of the same process stalls for up to 90 ms per call), so no thread of ours can
+read and split the next cloud meanwhile. A child process can: while it registers frame k,
+the preparation reads frame k + 1, splits off its ground and computes the information
+check of frame k - 1 (``localization.odometry.run_kiss_icp``). The child runs the same
+KISS-ICP with the same settings on the same float64 points, so its poses are those of an
+in-process run. The module imports numpy and kiss_icp only (the child starts in 0.5 s).
+
+A plain ``subprocess`` (not ``multiprocessing``): Celery's prefork workers are daemonic
+processes, which ``multiprocessing`` forbids to have children.
+
+Protocol on the child's stdin / stdout (native byte order, the child is on the same host):
+
+- parent -> child: ``uint64 n`` then ``n * 3`` float64 base points; ``n = 0`` means "no
+  usable cloud: predict at constant velocity". End of input ends the child.
+- child -> parent: 16 float64 (``T_odom_base`` of that frame, row-major), ``uint64 m`` and
+  ``m * 3`` float64 (the points KISS-ICP registered, its ``source``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+import subprocess
+import sys
+from typing import IO, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+_COUNT = struct.Struct("=Q")
+
+
+class KissProcessError(RuntimeError):
+    """The child process could not start, or died, or broke the protocol."""
+
+
+def _read_exact(stream: IO[bytes], n: int) -> bytes:
+    buf = bytearray()
+    while len(buf) < n:
+        chunk = stream.read(n - len(buf))
+        if not chunk:
+            raise KissProcessError(f"KISS-ICP process closed its output ({len(buf)}/{n} bytes)")
+        buf += chunk
+    return bytes(buf)
+
+
+class KissProcess:
+    """A KISS-ICP child process; ``settings`` are :func:`kiss_settings` of a KISSConfig.
+
+    Use as a context manager (the child is ended on exit); :meth:`send` a frame, then
+    :meth:`receive` its result before sending the next one.
+    """
+
+    def __init__(self, settings: dict[str, Any]) -> None:
+        cmd = [sys.executable, "-m", __name__, json.dumps(settings)]
+        try:
+            self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        except OSError as exc:
+            raise KissProcessError(f"cannot start the KISS-ICP process: {exc}") from exc
+
+    def __enter__(self) -> KissProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def send(self, points: F64) -> None:
+        """Queue one frame's (n, 3) base points (n = 0: constant-velocity prediction)."""
+        p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        try:
+            assert self.proc.stdin is not None
+            self.proc.stdin.write(_COUNT.pack(len(p)))
+            if len(p):
+                self.proc.stdin.write(memoryview(p).cast("B"))
+            self.proc.stdin.flush()
+        except (BrokenPipeError, OSError) as exc:
+            raise KissProcessError(f"KISS-ICP process gone ({self._status()})") from exc
+
+    def receive(self) -> tuple[F64, F64]:
+        """(T_odom_base (4, 4), source (m, 3)) of the frame sent last."""
+        assert self.proc.stdout is not None
+        try:
+            T = np.frombuffer(_read_exact(self.proc.stdout, 16 * 8), dtype=np.float64)
+            (m,) = _COUNT.unpack(_read_exact(self.proc.stdout, _COUNT.size))
+            src = np.frombuffer(_read_exact(self.proc.stdout, int(m) * 24), dtype=np.float64)
+        except KissProcessError as exc:
+            raise KissProcessError(f"{exc}; {self._status()}") from exc
+        return T.reshape(4, 4).copy(), src.reshape(-1, 3).copy()
+
+    def _status(self) -> str:
+        code = self.proc.poll()
+        return "still running" if code is None else f"exit code {code}"
+
+    def close(self) -> None:
+        """End the child (closing its input ends it; killed if it does not end)."""
+        try:
+            if self.proc.stdin is not None and not self.proc.stdin.closed:
+                self.proc.stdin.close()
+        except OSError:
+            pass
+        try:
+            self.proc.wait(timeout=10.0)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+
+
+def kiss_settings(cfg: Any) -> dict[str, Any]:
+    """The KISSConfig fields the preparation sets (see ``odometry._kiss_config``)."""
+    return {
+        "deskew": bool(cfg.data.deskew),
+        "max_range": float(cfg.data.max_range),
+        "min_range": float(cfg.data.min_range),
+        "voxel_size": float(cfg.mapping.voxel_size),
+        "max_num_threads": int(cfg.registration.max_num_threads),
+    }
+
+
+def kiss_config(settings: dict[str, Any]) -> Any:
+    """A KISSConfig from :func:`kiss_settings`."""
+    from kiss_icp.config import KISSConfig
+
+    cfg = KISSConfig()
+    cfg.data.deskew = bool(settings["deskew"])
+    cfg.data.max_range = float(settings["max_range"])
+    cfg.data.min_range = float(settings["min_range"])
+    cfg.mapping.voxel_size = float(settings["voxel_size"])
+    cfg.registration.max_num_threads = int(settings["max_num_threads"])
+    return cfg
+
+
+def serve(settings: dict[str, Any], inp: IO[bytes], out: IO[bytes]) -> None:
+    """The child's loop: register every frame read from ``inp``, answer on ``out``."""
+    from kiss_icp.kiss_icp import KissICP
+
+    kiss = KissICP(kiss_config(settings))
+    while True:
+        head = inp.read(_COUNT.size)
+        if len(head) < _COUNT.size:
+            return
+        (n,) = _COUNT.unpack(head)
+        p = np.frombuffer(_read_exact(inp, int(n) * 24), dtype=np.float64).reshape(-1, 3)
+        if n == 0:
+            kiss.last_pose = kiss.last_pose @ kiss.last_delta
+            source = np.zeros((0, 3))
+        else:
+            _, source = kiss.register_frame(p.copy(), np.zeros(len(p)))
+        src = np.ascontiguousarray(source, dtype=np.float64).reshape(-1, 3)
+        out.write(np.ascontiguousarray(kiss.last_pose, dtype=np.float64).tobytes())
+        out.write(_COUNT.pack(len(src)))
+        out.write(src.tobytes())
+        out.flush()
+
+
+if __name__ == "__main__":
+    serve(json.loads(sys.argv[1]), sys.stdin.buffer, sys.stdout.buffer)
