@@ -483,3 +483,18 @@ def test_kiss_process_reports_a_dead_child() -> None:
         with pytest.raises(KissProcessError, match=r"closed its output|KISS-ICP process gone"):
             child.send(np.zeros((200, 3)))
             child.receive()
+
+
+def test_odometry_makes_the_ground_pairs_as_it_goes(results: dict) -> None:
+    """The pairs the odometry loop computes while KISS-ICP works are those computed after it,
+    in the same (lag, k) order; fused uses them."""
+    from worker.preparation.localization.ground_pairs import LAGS, ground_pairs
+    from worker.preparation.localization.odometry import odometry_run
+
+    run = odometry_run(results["fire_site"]["_inp"])
+    assert run.ground_pairs is not None and len(run.ground_pairs) > 20
+    after = ground_pairs(run.grounds, run.T_odom_base, LAGS)
+    assert [(p.k, p.j) for p in run.ground_pairs] == [(p.k, p.j) for p in after]
+    for a, b in zip(run.ground_pairs, after, strict=True):
+        assert np.array_equal(a.T_k_j, b.T_k_j)
+    assert results["fire_site"]["fused"].health.metrics["fused_ground_pairs"] > 20

@@ -62,6 +62,7 @@ from worker.preparation.localization.common import (
     poses_from,
     remove_jumps,
 )
+from worker.preparation.localization.ground_pairs import LAGS as GROUND_LAGS
 from worker.preparation.localization.ground_pairs import ground_pairs
 from worker.preparation.localization.ins_wander import ins_wander
 from worker.preparation.localization.odometry import (
@@ -137,7 +138,7 @@ class Sigmas:
     #: and the sigmas of a pair's (height m, roll rad, pitch rad) as ``a + b * lag``, from
     #: their measured errors on the synthetic scenes (pitch 0.001 deg over 1 frame, 0.004
     #: over 10; height 1.3 and 4 mm; roll 0.006 and 0.011 deg).
-    ground_lags: tuple[int, ...] = (1, 10)
+    ground_lags: tuple[int, ...] = GROUND_LAGS
     ground_sigma_a: tuple[float, float, float] = (0.0015, 0.005 * DEG, 0.001 * DEG)
     ground_sigma_b: tuple[float, float, float] = (0.0003, 0.0006 * DEG, 0.0003 * DEG)
     att_bias: float = 1.0 * DEG
@@ -520,11 +521,12 @@ def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> 
         health.warn(f"fused: no ground pairs (odometry unavailable: {exc})")
         return None
     skipped = set(run.skipped)
-    pairs = [
-        pr
-        for pr in ground_pairs(run.grounds, run.T_odom_base, sig.ground_lags)
-        if pr.k not in skipped and pr.j not in skipped
-    ]
+    lags = tuple(sig.ground_lags)
+    # The odometry computed the default lags' pairs as it went (odometry.run_kiss_icp).
+    found = run.ground_pairs if lags == GROUND_LAGS and run.ground_pairs is not None else None
+    if found is None:
+        found = ground_pairs(run.grounds, run.T_odom_base, lags)
+    pairs = [pr for pr in found if pr.k not in skipped and pr.j not in skipped]
     health.metrics["fused_ground_pairs"] = float(len(pairs))
     if not pairs:
         health.warn("fused: no ground seen in common by frame pairs; height and pitch drift")

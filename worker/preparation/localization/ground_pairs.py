@@ -46,6 +46,8 @@ MAX_POINTS = 4000
 STRIDE = 2
 #: Fewer matched ground points than this: the pair says nothing.
 MIN_MATCHED = 300
+#: Frame offsets of the pairs the odometry computes as it goes (``fused``'s default lags).
+LAGS = (1, 10)
 #: Trim residuals beyond this many robust sigmas (floor in m).
 TRIM_SIGMAS = 3.0
 TRIM_FLOOR_M = 0.005
@@ -200,10 +202,33 @@ def _small_rotation(roll: float, pitch: float) -> F64:
     return Rotation.from_rotvec([roll, pitch, 0.0]).as_matrix()
 
 
+def pairs_ending_at(
+    grounds: list[FrameGround], T_odom_base: F64, j: int, lags: tuple[int, ...]
+) -> list[GroundPair]:
+    """The ground pairs (j - lag, j) for every lag: what frame j adds once its pose is known.
+
+    grounds : the frames' :func:`frame_ground` (at least up to j); T_odom_base : (>= j + 1,
+    4, 4) the odometry's poses (non-finite ones make no pair).
+    """
+    out = []
+    for lag in lags:
+        k = j - lag
+        if k < 0 or not (
+            np.all(np.isfinite(T_odom_base[k])) and np.all(np.isfinite(T_odom_base[j]))
+        ):
+            continue
+        T_k_j = np.linalg.inv(T_odom_base[k]) @ T_odom_base[j]
+        pair = ground_pair(grounds[k], grounds[j], T_k_j, k, j)
+        if pair is not None:
+            out.append(pair)
+    return out
+
+
 def ground_pairs(
     grounds: list[FrameGround], T_odom_base: F64, lags: tuple[int, ...]
 ) -> list[GroundPair]:
-    """Ground corrections of the odometry's relative poses for every pair (k, k + lag).
+    """Ground corrections of the odometry's relative poses for every pair (k, k + lag), in
+    the order (lag, k).
 
     Parameters
     ----------
@@ -211,13 +236,13 @@ def ground_pairs(
     T_odom_base : (n, 4, 4) the odometry's poses.
     lags : frame offsets of the pairs.
     """
-    out = []
-    n = len(grounds)
-    for lag in lags:
-        for k in range(n - lag):
-            j = k + lag
-            T_k_j = np.linalg.inv(T_odom_base[k]) @ T_odom_base[j]
-            pair = ground_pair(grounds[k], grounds[j], T_k_j, k, j)
-            if pair is not None:
-                out.append(pair)
-    return out
+    pairs = [
+        pr for j in range(len(grounds)) for pr in pairs_ending_at(grounds, T_odom_base, j, lags)
+    ]
+    return in_lag_order(pairs, lags)
+
+
+def in_lag_order(pairs: list[GroundPair], lags: tuple[int, ...]) -> list[GroundPair]:
+    """``pairs`` sorted by (position of their lag in ``lags``, first frame)."""
+    rank = {lag: i for i, lag in enumerate(lags)}
+    return sorted(pairs, key=lambda pr: (rank[pr.j - pr.k], pr.k))

@@ -43,9 +43,13 @@ from worker.preparation.localization.common import (
 from worker.preparation.localization.ground_pairs import (
     COLUMN_M,
     FrameGround,
+    GroundPair,
     column_floor,
     frame_ground,
+    in_lag_order,
+    pairs_ending_at,
 )
+from worker.preparation.localization.ground_pairs import LAGS as GROUND_LAGS
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -87,6 +91,8 @@ class OdometryRun:
         by ``auto``'s map-consistency check without reading the PCDs again.
     grounds : per frame its ground (:func:`~.ground_pairs.frame_ground`), taken from the
         column floors the ground removal computes anyway, for ``fused``'s ground pairs.
+    ground_pairs : the ground pairs of the default lags (``ground_pairs.LAGS``, order
+        (lag, k)), computed while KISS-ICP registers the next frames (None: not computed).
     seconds : wall time of the run (reading + KISS-ICP + diagnostics).
     """
 
@@ -97,6 +103,7 @@ class OdometryRun:
     skipped: list[int] = field(default_factory=list)
     clouds: list[F64] = field(default_factory=list)
     grounds: list[FrameGround] = field(default_factory=list)
+    ground_pairs: list[GroundPair] | None = None
     seconds: float = 0.0
     kiss_seconds: float = 0.0
 
@@ -257,6 +264,7 @@ def _run_frames(inp: LocalizationInput, kiss: Any, started: float) -> OdometryRu
     skipped: list[int] = []
     clouds: list[F64] = []
     grounds: list[FrameGround] = []
+    pairs: list[GroundPair] = []
     kiss_seconds = 0.0
     for k in range(n + 1):
         p = None
@@ -278,11 +286,14 @@ def _run_frames(inp: LocalizationInput, kiss: Any, started: float) -> OdometryRu
             sub = _subsample(np.asarray(source, dtype=np.float64), INFO_MAX_POINTS, rng)
             along[k - 1], lateral[k - 1] = information(sub)
             clouds.append(sub)
-    if not np.all(np.isfinite(T)):
+            pairs += pairs_ending_at(grounds, T, k - 1, GROUND_LAGS)
+    finite = bool(np.all(np.isfinite(T)))
+    if not finite:
         log.warning("KISS-ICP returned non-finite poses; replaced by identity motion")
         T = _repair_nonfinite(T)
     return OdometryRun(
         T, along, lateral, n_points, skipped, clouds, grounds,
+        in_lag_order(pairs, GROUND_LAGS) if finite else None,
         time.perf_counter() - started, kiss_seconds,
     )  # fmt: skip
 
