@@ -94,6 +94,8 @@ class OdometryRun:
     ground_pairs : the ground pairs of the default lags (``ground_pairs.LAGS``, order
         (lag, k)), computed while KISS-ICP registers the next frames (None: not computed).
     seconds : wall time of the run (reading + KISS-ICP + diagnostics).
+    kiss_seconds : time this process spent in KISS-ICP or waiting for its child process
+        (the health metric ``kiss_icp_seconds``).
     """
 
     T_odom_base: F64
