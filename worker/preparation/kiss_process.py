@@ -22,7 +22,6 @@ Protocol on the child's stdin / stdout (native byte order, the child is on the s
 from __future__ import annotations
 
 import json
-import logging
 import struct
 import subprocess
 import sys
@@ -32,7 +31,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
-log = logging.getLogger(__name__)
 
 _COUNT = struct.Struct("=Q")
 
@@ -52,7 +50,7 @@ def _read_exact(stream: IO[bytes], n: int) -> bytes:
 
 
 class KissProcess:
-    """A KISS-ICP child process; ``settings`` are :func:`kiss_settings` of a KISSConfig.
+    """A KISS-ICP child process with the :func:`kiss_config` of ``settings``.
 
     Use as a context manager (the child is ended on exit); :meth:`send` a frame, then
     :meth:`receive` its result before sending the next one.
@@ -114,19 +112,9 @@ class KissProcess:
             self.proc.stdout.close()
 
 
-def kiss_settings(cfg: Any) -> dict[str, Any]:
-    """The KISSConfig fields the preparation sets (see ``odometry._kiss_config``)."""
-    return {
-        "deskew": bool(cfg.data.deskew),
-        "max_range": float(cfg.data.max_range),
-        "min_range": float(cfg.data.min_range),
-        "voxel_size": float(cfg.mapping.voxel_size),
-        "max_num_threads": int(cfg.registration.max_num_threads),
-    }
-
-
 def kiss_config(settings: dict[str, Any]) -> Any:
-    """A KISSConfig from :func:`kiss_settings`."""
+    """A KISSConfig from the settings (keys deskew, max_range, min_range, voxel_size,
+    max_num_threads: what the preparation sets, see ``odometry._kiss_settings``)."""
     from kiss_icp.config import KISSConfig
 
     cfg = KISSConfig()

@@ -26,11 +26,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 
 from worker.poses import PoseTrack
-from worker.preparation.kiss_process import (
-    KissProcess,
-    KissProcessError,
-    kiss_settings,
-)
+from worker.preparation.kiss_process import KissProcess, KissProcessError, kiss_config
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
 from worker.preparation.localization.common import (
     ins_at_frames,
@@ -110,30 +106,33 @@ class OdometryRun:
     kiss_seconds: float = 0.0
 
 
-def _kiss_config(inp: LocalizationInput):
-    from kiss_icp.config import KISSConfig
+def _kiss_settings(inp: LocalizationInput) -> dict[str, Any]:
+    """The KISS-ICP settings of this input's options (:func:`~worker.preparation.
+    kiss_process.kiss_config` turns them into a KISSConfig, here or in the child)."""
+    return {
+        "deskew": False,
+        "max_range": float(inp.options.get("odometry_max_range", MAX_RANGE_M)),
+        "min_range": float(inp.options.get("odometry_min_range", MIN_RANGE_M)),
+        "voxel_size": float(inp.options.get("odometry_voxel_size", VOXEL_SIZE_M)),
+        "max_num_threads": int(inp.options.get("odometry_threads", 0)),
+    }
 
-    cfg = KISSConfig()
-    cfg.data.deskew = False
-    cfg.data.max_range = float(inp.options.get("odometry_max_range", MAX_RANGE_M))
-    cfg.data.min_range = float(inp.options.get("odometry_min_range", MIN_RANGE_M))
-    cfg.mapping.voxel_size = float(inp.options.get("odometry_voxel_size", VOXEL_SIZE_M))
-    cfg.registration.max_num_threads = int(inp.options.get("odometry_threads", 0))
-    return cfg
+
+def _kiss_config(inp: LocalizationInput) -> Any:
+    """The KISSConfig of this input's options."""
+    return kiss_config(_kiss_settings(inp))
 
 
-def read_points(inp: LocalizationInput, frame: int, stored: bool = False) -> NDArray:
+def read_points(inp: LocalizationInput, frame: int) -> F64:
     """(m, 3) finite float64 base points of one frame (empty on an unreadable cloud).
 
     Uses the preparation's shared FrameClouds (``inp.options["_frame_clouds"]``) when there
-    is one, so each PCD is read once per preparation; ``stored``: its float32 array as
-    stored (no float64 copy of the whole cloud, for readers that thin it first).
+    is one, so each PCD is read once per preparation.
     """
     shared = inp.options.get("_frame_clouds")
     if shared is not None:
         try:
-            fc = shared.get(frame)
-            return fc.p_base32 if stored else fc.p_base
+            return shared.get(frame).p_base
         except Exception as exc:
             log.warning("frame %d: cloud unreadable (%s); skipped by odometry", frame, exc)
             return np.zeros((0, 3))
@@ -244,15 +243,15 @@ def run_kiss_icp(inp: LocalizationInput) -> OdometryRun:
     are the same).
     """
     started = time.perf_counter()
-    cfg = _kiss_config(inp)
+    settings = _kiss_settings(inp)
     if inp.options.get("odometry_process", True):
         try:
-            with KissProcess(kiss_settings(cfg)) as child:
+            with KissProcess(settings) as child:
                 return _run_frames(inp, child, started)
         except KissProcessError as exc:
             log.warning("odometry: %s; running KISS-ICP in this process", exc)
             started = time.perf_counter()
-    return _run_frames(inp, _InProcess(cfg), started)
+    return _run_frames(inp, _InProcess(kiss_config(settings)), started)
 
 
 def _run_frames(inp: LocalizationInput, kiss: Any, started: float) -> OdometryRun:
