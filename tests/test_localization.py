@@ -456,7 +456,19 @@ def test_kiss_icp_in_a_child_process_gives_the_in_process_poses(
     from worker.preparation.kiss_process import KissProcessError
 
     folder = seqs["fire_site"]
-    child = od.run_kiss_icp(_input(folder))
+    started = []
+    real_process = od.KissProcess
+
+    def spawned(settings: dict) -> object:
+        started.append(settings)
+        return real_process(settings)
+
+    monkeypatch.setattr(od, "KissProcess", spawned)
+    with caplog.at_level("WARNING"):
+        child = od.run_kiss_icp(_input(folder))
+    # the child really ran the frames: no fallback to this process
+    assert len(started) == 1 and "running KISS-ICP in this process" not in caplog.text
+    caplog.clear()
     inproc = od.run_kiss_icp(make_input(Sequence.open(folder), options={"odometry_process": False}))
     assert np.abs(child.T_odom_base - inproc.T_odom_base).max() < 1e-9
     assert np.array_equal(child.along_info, inproc.along_info)
