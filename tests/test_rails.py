@@ -148,6 +148,20 @@ def test_parallel_tracks_found(klein_flottbek: Scene) -> None:
     assert lat == sorted(lat)
 
 
+def test_ego_only_fit_gives_the_full_fits_ego(klein_flottbek: Scene) -> None:
+    """The pre-tracks of preparation fit the ego track alone (other_tracks off): the same
+    ego as the full fit, without the neighbours."""
+    full = klein_flottbek.result
+    assert len(full.centrelines) > 1
+    ego_only = find_tracks(
+        klein_flottbek.cloud, klein_flottbek.poses, options={"other_tracks": False}
+    )
+    assert len(ego_only.centrelines) == 1
+    assert ego_only.ego is not None and full.ego is not None
+    np.testing.assert_array_equal(ego_only.ego.knots_xyz, full.ego.knots_xyz)
+    np.testing.assert_array_equal(ego_only.ego.knots_roll, full.ego.knots_roll)
+
+
 def test_switch_ego_does_not_jump(switch: Scene) -> None:
     res = switch.result
     e = _errors(res.ego, switch.ego, step=0.25)

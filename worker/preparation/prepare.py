@@ -240,7 +240,8 @@ def run_preparation(
         )
 
     with stage("pre_tracks"):
-        pre_tracks = _find_tracks(find_tracks, pre_cloud, pre_track, seq, config)
+        # the strategies need the ego track only; the neighbours come from the final cloud
+        pre_tracks = _find_tracks(find_tracks, pre_cloud, pre_track, seq, config, ego_only=True)
 
     with stage("strategy"):
         inp.ego = pre_tracks.ego
@@ -328,11 +329,13 @@ def _find_tracks(
     track: PoseTrack,
     seq: Sequence,
     config: PrepareConfig,
+    ego_only: bool = False,
 ) -> Any:
+    options = dict(config.rails.options)
+    if ego_only:
+        options["other_tracks"] = False
     try:
-        return find_tracks(
-            cloud, track, backend=config.rails.backend, seq=seq, options=dict(config.rails.options)
-        )
+        return find_tracks(cloud, track, backend=config.rails.backend, seq=seq, options=options)
     except ValueError as exc:
         raise PreparationError(f"rail extraction ({config.rails.backend}): {exc}") from exc
 
