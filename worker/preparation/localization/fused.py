@@ -46,9 +46,11 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.sparse import coo_matrix, csc_matrix, identity
 from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
@@ -654,6 +656,24 @@ STEP_TOL = 1e-5
 REUSE_JACOBIAN_STEP = 1e-3
 
 
+#: Up to this many parameters the normal equations are solved dense (Cholesky of a
+#: 650 x 650 matrix, 100 frames: 3 ms against 30 ms for the sparse LU; 2000: 90 ms, 32 MB).
+DENSE_MAX_PARAMS = 2000
+
+
+def _normal_step(A: Any, g: F64) -> F64:
+    """Solve ``(A + 1e-9 I) dx = g`` for the sparse normal matrix ``A`` (n, n)."""
+    n = A.shape[0]
+    if n <= DENSE_MAX_PARAMS:
+        Ad = A.toarray()
+        Ad[np.diag_indices(n)] += 1e-9
+        try:
+            return cho_solve(cho_factor(Ad, check_finite=False), g, check_finite=False)
+        except LinAlgError:
+            pass  # not positive definite (numerically): the LU below copes
+    return spsolve(A.tocsc() + 1e-9 * identity(n, format="csc"), g)
+
+
 def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
     """Gauss-Newton with Huber weights (IRLS) on the sparse problem; the parameter vector.
 
@@ -672,8 +692,7 @@ def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
         a = np.abs(r)
         w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
         JtW = J.T.multiply(w[None, :]).tocsc()
-        A = (JtW @ J).tocsc() + 1e-9 * identity(J.shape[1], format="csc")
-        dx = spsolve(A, -(JtW @ r))
+        dx = _normal_step(JtW @ J, -(JtW @ r))
         if not np.all(np.isfinite(dx)):
             raise FloatingPointError("non-finite Gauss-Newton step")
         x = x + dx
