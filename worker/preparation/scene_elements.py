@@ -284,10 +284,13 @@ def _outline(
     """(polygon (k, 3), per-bin min lateral, per-bin max lateral) of a patch, on its plane."""
     edges = np.arange(s.min(), s.max() + step, step)
     b = np.clip(np.searchsorted(edges, s, side="right") - 1, 0, max(len(edges) - 2, 0))
-    used = np.unique(b)
-    lo = np.array([lat[b == k].min() for k in used])
-    hi = np.array([lat[b == k].max() for k in used])
-    sc = np.array([s[b == k].mean() for k in used])
+    order = np.argsort(b, kind="stable")
+    bs = b[order]
+    starts = np.flatnonzero(np.concatenate([[True], bs[1:] != bs[:-1]]))
+    counts = np.diff(np.append(starts, len(bs)))
+    lo = np.minimum.reduceat(lat[order], starts)
+    hi = np.maximum.reduceat(lat[order], starts)
+    sc = np.add.reduceat(s[order], starts) / counts
     if len(sc) == 1:  # a patch shorter than one step: two vertices along s
         sc = np.array([s.min(), s.max()])
         lo, hi = np.repeat(lo, 2), np.repeat(hi, 2)
