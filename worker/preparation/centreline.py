@@ -206,12 +206,17 @@ class Centreline:
         heading = np.unwrap(np.arctan2(tan[:, 1], tan[:, 0]))
         kappa = np.gradient(heading, ss) if len(ss) > 2 else np.zeros(len(ss))  # 1/m, left +
         key = np.floor(p[:, :2] / cell).astype(np.int64)
-        key -= key.min(axis=0)
-        width = int(key[:, 1].max()) + 1
-        uniq, inv = np.unique(key[:, 0] * width + key[:, 1], return_inverse=True)
-        lo = np.floor(p[:, :2].min(axis=0) / cell)
-        centres = (np.stack([uniq // width, uniq % width], axis=1) + lo + 0.5) * cell
-        j = tree.query(centres)[1][inv.reshape(-1)]
+        lo = key.min(axis=0)
+        key -= lo
+        nx, ny = (int(v) + 1 for v in key.max(axis=0))
+        lin = key[:, 0] * ny + key[:, 1]
+        if nx * ny <= max(4096, len(p) // 4):  # every column of the bounding box: no sort
+            centres = (np.stack(np.divmod(np.arange(nx * ny), ny), axis=1) + lo + 0.5) * cell
+            j = tree.query(centres)[1][lin]
+        else:  # a sparse box (a long diagonal stretch): the occupied columns only
+            uniq, inv = np.unique(lin, return_inverse=True)
+            centres = (np.stack([uniq // ny, uniq % ny], axis=1) + lo + 0.5) * cell
+            j = tree.query(centres)[1][inv.reshape(-1)]
         last = len(ss) - 1
         for _ in range(2):
             dx, dy = p[:, 0] - pts[j, 0], p[:, 1] - pts[j, 1]
