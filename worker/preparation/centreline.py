@@ -19,6 +19,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import CubicSpline
 
+from worker.columns import column_max, column_min
+
 F64 = NDArray[np.float64]
 
 RAIL_HEAD_SPACING = 1.500  # m between rail-head centres (1.435 m gauge + 2 x 0.0325)
@@ -206,9 +208,9 @@ class Centreline:
         heading = np.unwrap(np.arctan2(tan[:, 1], tan[:, 0]))
         kappa = np.gradient(heading, ss) if len(ss) > 2 else np.zeros(len(ss))  # 1/m, left +
         key = np.floor(p[:, :2] / cell).astype(np.int64)
-        lo = key.min(axis=0)
+        lo = column_min(key)
         key -= lo
-        nx, ny = (int(v) + 1 for v in key.max(axis=0))
+        nx, ny = (int(v) + 1 for v in column_max(key))
         lin = key[:, 0] * ny + key[:, 1]
         if nx * ny <= max(4096, len(p) // 4):  # every column of the bounding box: no sort
             centres = (np.stack(np.divmod(np.arange(nx * ny), ny), axis=1) + lo + 0.5) * cell

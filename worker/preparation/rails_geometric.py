@@ -24,6 +24,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt, minimum_filter
 
+from worker.columns import column_max, column_min, finite_rows
+
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
@@ -68,7 +70,7 @@ def corridor_mask(
     (n,) bool.
     """
     p = np.asarray(p_world, dtype=np.float64).reshape(-1, 3)
-    ok = np.isfinite(p).all(axis=1)
+    ok = finite_rows(p)
     if len(traj_world) == 0 or not ok.any():
         return np.zeros(len(p), bool)
     samples = densify_polyline(np.asarray(traj_world, dtype=np.float64), 0.5)
@@ -137,9 +139,9 @@ def _ridge_tile(
 ) -> NDArray[np.bool_]:
     """Candidate flags for the points of one tile (``inner``: the tile proper)."""
     c = params.cell
-    lo = p[:, :2].min(axis=0)
+    lo = column_min(p[:, :2])
     ij = np.floor((p[:, :2] - lo) / c).astype(np.int64)
-    nx, ny = ij.max(axis=0) + 1
+    nx, ny = column_max(ij) + 1
     lin = ij[:, 0] * ny + ij[:, 1]
     z = p[:, 2]
     zmax = np.full(nx * ny, -np.inf)
@@ -194,7 +196,7 @@ def rail_head_candidates(p_world: F64, params: RidgeParams | None = None) -> NDA
         return out
     ring = _ring_offsets(params)
     margin = max(params.ground_window, params.ring[1]) + params.cell
-    span = p[:, :2].max(axis=0) - p[:, :2].min(axis=0)
+    span = column_max(p[:, :2]) - column_min(p[:, :2])
     if np.prod(span / params.cell + 1) <= 4e7:  # one grid (<= ~320 MB of float64)
         return _ridge_tile(p, np.ones(len(p), bool), params, ring)
     tile = params.tile

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from renderer.transforms import transform_points
+from worker.columns import column_min, finite_rows
 from worker.osdar.sequence import Sequence
 from worker.poses import PoseTrack
 from worker.preparation.frame_clouds import FrameClouds
@@ -74,7 +75,7 @@ def voxel_keep(xyz: F64, voxel_size: float) -> NDArray[np.int64]:
     if voxel_size <= 0 or len(xyz) == 0:
         return np.arange(len(xyz))
     key = np.floor(xyz / voxel_size).astype(np.int64)
-    key -= key.min(axis=0)
+    key -= column_min(key)
     if int(key.max()) < (1 << 21):
         packed = (key[:, 0] << 42) | (key[:, 1] << 21) | key[:, 2]
         _, first = unique_first(packed)
@@ -141,7 +142,7 @@ def register_clouds(
     for f, T in zip(counters, T_all, strict=True):
         p_base, si, inten = _frame_points(seq, f, clouds)
         # FrameClouds has dropped the non-finite points already
-        mask = np.ones(len(p_base), bool) if clouds is not None else np.isfinite(p_base).all(1)
+        mask = np.ones(len(p_base), bool) if clouds is not None else finite_rows(p_base)
         if max_range is not None:
             mask &= np.einsum("ij,ij->i", p_base, p_base) <= max_range**2
         if lateral_limit is not None:

@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from worker.columns import column_min
 from worker.poses import PoseTrack
 from worker.preparation.centreline import Centreline
 from worker.preparation.config import PlaneConfig, PoleConfig
@@ -401,7 +402,7 @@ def _make_plane(
 def _tall_columns(xy: F64, z: F64, cell: float, min_extent: float) -> NDArray[np.bool_]:
     """(n,) mask of points in xy cells whose z extent is at least ``min_extent``."""
     key = np.floor(xy / cell).astype(np.int64)
-    key -= key.min(axis=0)
+    key -= column_min(key)
     _, inv = np.unique(key[:, 0] * (int(key[:, 1].max()) + 1) + key[:, 1], return_inverse=True)
     inv = inv.reshape(-1)
     k = inv.max() + 1

@@ -45,6 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from worker.columns import finite_rows
 from worker.poses import PoseTrack
 from worker.preparation.centreline import RAIL_HEAD_SPACING, Centreline
 from worker.preparation.rails_geometric import (
@@ -825,7 +826,7 @@ def find_tracks(
     metrics: dict[str, float] = {}
     t0 = time.perf_counter()
     xyz = np.asarray(cloud.xyz, dtype=np.float64).reshape(-1, 3)
-    finite = np.isfinite(xyz).all(axis=1)
+    finite = finite_rows(xyz)
     n_bad = int(len(xyz) - finite.sum())
     if n_bad:
         warnings.append(f"{n_bad} non-finite points ignored")
