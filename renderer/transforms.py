@@ -115,7 +115,9 @@ def transform_points(T_a_b: ArrayLike, p_b: ArrayLike) -> F64:
     p = np.asarray(p_b, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"points must be (n, 3), got {p.shape}")
-    return p @ T[:3, :3].T + T[:3, 3]
+    out = p @ T[:3, :3].T
+    out += T[:3, 3]  # in place: a second (n, 3) array would cost more than the product
+    return out
 
 
 def rotation_angle(R: ArrayLike) -> F64:

@@ -75,7 +75,7 @@ def corridor_mask(
         return np.zeros(len(p), bool)
     samples = densify_polyline(np.asarray(traj_world, dtype=np.float64), 0.5)
     reach = max(half_width, lookahead)
-    pf = np.where(ok[:, None], p, 0.0)
+    pf = p if ok.all() else np.where(ok[:, None], p, 0.0)
     # distance to the trajectory on a 1 m raster (distance transform; ~1 m resolution is
     # plenty for a corridor), with the height of the nearest trajectory sample
     g = 1.0
@@ -87,26 +87,31 @@ def corridor_mask(
     zgrid = np.full(shape, np.nan)
     zgrid[sij[:, 0], sij[:, 1]] = samples[:, 2]
     dist, (ni, nj) = distance_transform_edt(occ, return_indices=True)
-    pij = np.floor((pf[:, :2] - lo) / g).astype(np.int64)
-    inb = ok & (pij[:, 0] >= 0) & (pij[:, 1] >= 0) & (pij[:, 0] < shape[0])
-    inb &= pij[:, 1] < shape[1]
+    # the grid cell of every point, column by column (the (n, 3) array is C-ordered)
+    pi = np.floor((pf[:, 0] - lo[0]) / g).astype(np.int64)
+    pj = np.floor((pf[:, 1] - lo[1]) / g).astype(np.int64)
+    inb = ok & (pi >= 0) & (pj >= 0) & (pi < shape[0]) & (pj < shape[1])
     cand = np.flatnonzero(inb)
-    pi, pj = pij[cand, 0], pij[cand, 1]
-    d = dist[pi, pj] * g
+    cell = pi[cand] * shape[1] + pj[cand]
+    d = dist.ravel()[cell] * g
     near = d <= reach
-    cand, pi, pj, d = cand[near], pi[near], pj[near], d[near]
-    dz = pf[cand, 2] - zgrid[ni[pi, pj], nj[pi, pj]]
+    cand, cell, d = cand[near], cell[near], d[near]
+    nearest = ni.ravel()[cell] * shape[1] + nj.ravel()[cell]
+    dz = pf[cand, 2] - zgrid.ravel()[nearest]
     in_strip = d <= half_width
     # beyond the strip: only around the first and last pose (lookahead)
-    q = pf[cand, :2]
+    keep = in_strip.copy()
+    out_idx = np.flatnonzero(~in_strip)
+    qx, qy = pf[cand[out_idx], 0], pf[cand[out_idx], 1]
     d_end = np.minimum(
-        np.hypot(q[:, 0] - samples[0, 0], q[:, 1] - samples[0, 1]),
-        np.hypot(q[:, 0] - samples[-1, 0], q[:, 1] - samples[-1, 1]),
+        np.hypot(qx - samples[0, 0], qy - samples[0, 1]),
+        np.hypot(qx - samples[-1, 0], qy - samples[-1, 1]),
     )
+    keep[out_idx] = d_end <= lookahead
     slack = 0.02 * np.where(in_strip, 0.0, d)
     z_ok = (dz >= z_band[0] - slack) & (dz <= z_band[1] + slack)
     out = np.zeros(len(p), bool)
-    out[cand[(in_strip | (d_end <= lookahead)) & z_ok]] = True
+    out[cand[keep & z_ok]] = True
     return out
 
 
