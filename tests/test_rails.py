@@ -162,6 +162,29 @@ def test_ego_only_fit_gives_the_full_fits_ego(klein_flottbek: Scene) -> None:
     np.testing.assert_array_equal(ego_only.ego.knots_roll, full.ego.knots_roll)
 
 
+def test_rail_heads_and_ego_do_not_depend_on_how_wide_the_cloud_is(switch: Scene) -> None:
+    """The ridge detector's cells lie on the world grid, so a cloud cropped to a band
+    around the track gives the same rail-head candidates near the track, and the same ego
+    track: what lets the pre-registration keep a narrow band (pre_lateral_limit)."""
+    from worker.preparation.rails_geometric import rail_head_candidates
+
+    xyz = switch.cloud.xyz
+    lateral = np.abs(switch.ego.project_many(xyz).lateral)
+    band = lateral <= 8.0
+    assert 0.2 < band.mean() < 0.9  # the crop removes a real part of the cloud
+    flags_all = rail_head_candidates(xyz)
+    flags_band = rail_head_candidates(xyz[band])
+    near = lateral[band] <= 4.0
+    np.testing.assert_array_equal(flags_band[near], flags_all[band][near])
+    assert flags_band[near].sum() > 1000
+    ego_all = find_tracks(switch.cloud, switch.poses, options={"other_tracks": False}).ego
+    ego_band = find_tracks(
+        switch.cloud.select(band), switch.poses, options={"other_tracks": False}
+    ).ego
+    assert ego_all is not None and ego_band is not None
+    np.testing.assert_array_equal(ego_band.knots_xyz, ego_all.knots_xyz)
+
+
 def test_switch_ego_does_not_jump(switch: Scene) -> None:
     res = switch.result
     e = _errors(res.ego, switch.ego, step=0.25)

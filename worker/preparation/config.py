@@ -35,6 +35,10 @@ class RegistrationConfig(_Section):
     frame_step: int = Field(4, ge=1)  # every k-th frame for the final cloud (10 Hz overlaps)
     lateral_limit: float | None = Field(30.0, gt=0.0)  # m, |y| in the base frame kept
     pre_frame_step: int = Field(4, ge=1)  # every k-th frame for the pre-registration
+    #: m, |y| in the base frame kept for the pre-registration: its cloud serves only to find
+    #: the ego track along the driven stretch (the rail heads near each pose, and ahead as
+    #: far as the track stays within this band), not the neighbours or the scene.
+    pre_lateral_limit: float | None = Field(10.0, gt=0.0)
     pre_poses: Literal["odometry", "ins"] = "odometry"  # poses of the pre-registration
 
     @model_validator(mode="after")
@@ -146,8 +150,9 @@ class PrepareConfig(_Section):
         """Arguments of ``register_clouds`` for the final or the pre-registration."""
         r = self.registration
         voxel = r.voxel_size if final else r.pre_voxel_size
+        lateral = r.lateral_limit if final else r.pre_lateral_limit
         return {
             "voxel_size": float(voxel),
             "max_range": float(r.max_range),
-            "lateral_limit": None if r.lateral_limit is None else float(r.lateral_limit),
+            "lateral_limit": None if lateral is None else float(lateral),
         }
