@@ -446,6 +446,30 @@ def test_solve_with_reused_jacobian_reaches_the_full_newton_solution(
     assert fast_calls < calls["n"]
 
 
+def test_jacobian_columns_of_the_misalignment_and_bias_need_no_full_evaluation(
+    results: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The Jacobian's misalignment and INS-bias columns recompute only the INS and prior
+    residuals (the poses do not move): the same Jacobian, bit for bit, as full evaluations."""
+    from worker.preparation.localization import fused as F
+    from worker.preparation.localization.base import Health
+
+    pb = F.build_problem(results["fire_site"]["_inp"], Health(), F.Sigmas())
+    rng = np.random.default_rng(1)
+    x = 1e-3 * rng.normal(size=F._n_params(pb.n, pb.n_knots))
+    S = F.sparsity(pb)
+    groups = F._column_groups(pb.n, pb.n_knots, F._frame_period(pb))
+    assert any(g.min() >= 6 * pb.n for g in groups)
+    r0 = F.residuals(x, pb)
+    J_fast = F.jacobian(x, r0, pb, S, groups)
+    full = F.residuals
+    monkeypatch.setattr(F, "residuals", lambda x_, pb_, same=None: full(x_, pb_, None))
+    J_full = F.jacobian(x, r0, pb, S, groups)
+    assert J_fast.shape == J_full.shape
+    assert (J_fast != J_full).nnz == 0
+    assert J_full[:, 6 * pb.n :].nnz > 0
+
+
 def test_dense_normal_equations_give_the_sparse_solution(
     results: dict, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -70,7 +70,10 @@ class Centreline:
         s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
         bc = "natural" if len(p) > 2 else "not-a-knot"
         self._xyz = CubicSpline(s, p, axis=0, bc_type=bc)
-        self._roll = CubicSpline(s, r, bc_type=bc) if len(p) > 2 else None
+        # A constant roll (zero, or a follower's reference) needs no spline: interpolating
+        # it linearly gives the same constant.
+        curved = len(p) > 2 and bool(np.any(r != r[0]))
+        self._roll = CubicSpline(s, r, bc_type=bc) if curved else None
         self._roll_lin = (s, r)
         self.knots_s: F64 = s
         self.knots_xyz: F64 = p

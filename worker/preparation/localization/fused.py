@@ -233,8 +233,13 @@ def _unpack(x: F64, pb: Problem) -> tuple[F64, F64, F64, F64, float]:
     xp = x[: 6 * n].reshape(n, 6)
     R = Rotation.from_rotvec(xp[:, :3]).as_matrix() @ pb.R0
     p = pb.p0 + xp[:, 3:]
-    lever, bore, lat = x[6 * n : 6 * n + 3], x[6 * n + 3 : 6 * n + 6], float(x[6 * n + 6])
-    return R, p, lever, bore, lat
+    return (R, p, *_misalignment_of(x, pb))
+
+
+def _misalignment_of(x: F64, pb: Problem) -> tuple[F64, F64, float]:
+    """The misalignment part of ``x``: lever (3,), boresight (3,), latency."""
+    n = pb.n
+    return x[6 * n : 6 * n + 3], x[6 * n + 3 : 6 * n + 6], float(x[6 * n + 6])
 
 
 def _bias_knots_of(x: F64, pb: Problem) -> F64:
@@ -265,9 +270,23 @@ def _bias_knots(times: F64, k: NDArray[np.int64], knot_s: float) -> tuple:
     return i, u - i, n_knots
 
 
-def residuals(x: F64, pb: Problem) -> F64:
-    """All residual blocks, stacked (see the module docstring)."""
-    R, p, lever, bore, lat = _unpack(x, pb)
+def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = None) -> F64:
+    """All residual blocks, stacked (see the module docstring).
+
+    ``same_poses`` = (R, p, r) of a parameter vector with the same pose part as ``x``:
+    then only the blocks of the misalignment and the INS bias (the INS residuals and the
+    priors) are computed, the others copied from ``r`` (the Jacobian's columns of those
+    parameters; the same values as a full evaluation).
+    """
+    if same_poses is not None:
+        R, p, r = same_poses
+        out_ins, out_prior = _ins_blocks(x, pb, R, p), _prior_blocks(x, pb)
+        r = r.copy()
+        i0 = 6 * (pb.n - 1)
+        r[i0 : i0 + len(out_ins)] = out_ins
+        r[len(r) - len(out_prior) :] = out_prior
+        return r
+    R, p, _, _, _ = _unpack(x, pb)
     sig = pb.sig
     out = []
     # odometry
@@ -276,23 +295,7 @@ def residuals(x: F64, pb: Problem) -> F64:
     out.append((dp * pb.w_odo_t).ravel())
     E = np.swapaxes(pb.d_R, 1, 2) @ Rt @ R[1:]
     out.append((_log_rotation(E) * pb.w_odo_r[:, None]).ravel())
-    # INS
-    k = pb.ins_k
-    if len(k):
-        # The latency is not applied to positions: it moves them along the track only,
-        # exactly like the along-track lever arm and the INS's own along-track error, none
-        # of which anything here observes (see the module docstring).
-        # INS = truth + slow bias: position p + b(t), attitude Exp(beta(t)) @ R.
-        bias = _bias_at_records(x, pb)
-        beta = bias[:, :3]
-        pred = p[k] + R[k] @ lever + bias[:, 3:]
-        out.append(((pred - pb.p_ins) / sig.ins_p).ravel())
-        R_meas = Rotation.from_rotvec(pb.w_ins * lat).as_matrix() @ pb.R_ins
-        R_pred = (
-            Rotation.from_rotvec(beta).as_matrix() @ R[k] @ Rotation.from_rotvec(bore).as_matrix()
-        )
-        err = _log_rotation(np.swapaxes(R_meas, 1, 2) @ R_pred)
-        out.append((err / sig.ins_r).ravel())
+    out.append(_ins_blocks(x, pb, R, p))
     # rails
     if pb.rail is not None:
         c, Rr = pb.rail["c"], pb.rail["R"]
@@ -319,6 +322,39 @@ def residuals(x: F64, pb: Problem) -> F64:
         out.append((a_base / np.asarray(sig.acc)).ravel())
         w = _log_rotation(np.swapaxes(R[:-1], 1, 2) @ R[1:])
         out.append(((w[1:] - w[:-1]) / np.asarray(sig.rot_acc)).ravel())
+    out.append(_prior_blocks(x, pb))
+    return np.concatenate(out)
+
+
+def _ins_blocks(x: F64, pb: Problem, R: F64, p: F64) -> F64:
+    """The INS residuals (positions, attitudes) for poses ``R`` (n, 3, 3), ``p`` (n, 3)."""
+    lever, bore, lat = _misalignment_of(x, pb)
+    sig = pb.sig
+    out: list[F64] = []
+    k = pb.ins_k
+    if len(k):
+        # The latency is not applied to positions: it moves them along the track only,
+        # exactly like the along-track lever arm and the INS's own along-track error, none
+        # of which anything here observes (see the module docstring).
+        # INS = truth + slow bias: position p + b(t), attitude Exp(beta(t)) @ R.
+        bias = _bias_at_records(x, pb)
+        beta = bias[:, :3]
+        pred = p[k] + R[k] @ lever + bias[:, 3:]
+        out.append(((pred - pb.p_ins) / sig.ins_p).ravel())
+        R_meas = Rotation.from_rotvec(pb.w_ins * lat).as_matrix() @ pb.R_ins
+        R_pred = (
+            Rotation.from_rotvec(beta).as_matrix() @ R[k] @ Rotation.from_rotvec(bore).as_matrix()
+        )
+        err = _log_rotation(np.swapaxes(R_meas, 1, 2) @ R_pred)
+        out.append((err / sig.ins_r).ravel())
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def _prior_blocks(x: F64, pb: Problem) -> F64:
+    """The priors of the misalignment and of the INS bias knots and their steps."""
+    lever, bore, lat = _misalignment_of(x, pb)
+    sig = pb.sig
+    out: list[F64] = []
     out.append(lever / pb.lever_sigma)
     out.append(bore / pb.bore_sigma)
     out.append(np.array([lat / sig.latency]))
@@ -632,11 +668,14 @@ def jacobian(x: F64, r0: F64, pb: Problem, S: csc_matrix, groups: list) -> csc_m
     """Sparse forward-difference Jacobian of :func:`residuals` at ``x``."""
     rows_all, cols_all, vals_all = [], [], []
     indptr, indices = S.indptr, S.indices
+    R, p, *_ = _unpack(x, pb)
     for cols in groups:
         h = 1e-6 * np.maximum(1.0, np.abs(x[cols]))
         xh = x.copy()
         xh[cols] += h
-        dr = residuals(xh, pb) - r0
+        # columns of the misalignment and the INS bias leave the poses as they are
+        same = (R, p, r0) if cols.min() >= 6 * pb.n else None
+        dr = residuals(xh, pb, same) - r0
         for c, hc in zip(cols, h, strict=True):
             rows = indices[indptr[c] : indptr[c + 1]]
             rows_all.append(rows)
