@@ -10,12 +10,7 @@ rail-head cell when
   (``max_ring_high``) are about as high (within ``ring_dz``). A line crosses a ring twice;
   a platform, a wall, a car or a bush fills it.
 
-The points of such cells near the cell's top (``top_band``) are the candidates, from
-``grid_shifts`` placements of the grid (world-aligned, shifted by ``cell / grid_shifts``
-along both axes) united: a rail head is a few centimetres wide, and which of its points
-one grid's cells call the top moves the fitted centreline by a centimetre or two with the
-grid's placement (the fused poses by up to a pixel at 50 m on klein_flottbek, 0.9-1.7 px
-over four placements of one grid, 1.3-1.4 px with two united). Pairing at
+The points of such cells near the cell's top (``top_band``) are the candidates. Pairing at
 the gauge and following along the track is done by :mod:`worker.preparation.tracks`.
 Everything is vectorised; the grid is processed in square tiles so memory stays bounded.
 """
@@ -49,7 +44,6 @@ class RidgeParams:
     min_ring_occupied: int = 4
     top_band: float = 0.035
     tile: float = 80.0
-    grid_shifts: int = 2
 
 
 def corridor_mask(
@@ -146,18 +140,13 @@ def _ring_offsets(params: RidgeParams) -> NDArray[np.int64]:
 
 
 def _ridge_tile(
-    p: F64,
-    inner: NDArray[np.bool_],
-    params: RidgeParams,
-    ring: NDArray[np.int64],
-    shift: float = 0.0,
+    p: F64, inner: NDArray[np.bool_], params: RidgeParams, ring: NDArray[np.int64]
 ) -> NDArray[np.bool_]:
-    """Candidate flags for the points of one tile (``inner``: the tile proper) on the grid
-    of cells ``shift + k * cell`` (m, both axes)."""
+    """Candidate flags for the points of one tile (``inner``: the tile proper)."""
     c = params.cell
-    # cells on a world grid: the candidates near a rail do not depend on how far the cloud
-    # reaches (a narrower crop finds the same ones)
-    lo = np.floor((column_min(p[:, :2]) - shift) / c) * c + shift
+    # cells on the world grid of multiples of `c`: the candidates near a rail do not
+    # depend on how far the cloud reaches (a narrower crop finds the same ones)
+    lo = np.floor(column_min(p[:, :2]) / c) * c
     ij = np.floor((p[:, :2] - lo) / c).astype(np.int64)
     nx, ny = column_max(ij) + 1
     lin = ij[:, 0] * ny + ij[:, 1]
@@ -215,14 +204,8 @@ def rail_head_candidates(p_world: F64, params: RidgeParams | None = None) -> NDA
     ring = _ring_offsets(params)
     margin = max(params.ground_window, params.ring[1]) + params.cell
     span = column_max(p[:, :2]) - column_min(p[:, :2])
-    shifts = [
-        k * params.cell / max(1, params.grid_shifts) for k in range(max(1, params.grid_shifts))
-    ]
     if np.prod(span / params.cell + 1) <= 4e7:  # one grid (<= ~320 MB of float64)
-        everywhere = np.ones(len(p), bool)
-        for shift in shifts:
-            out |= _ridge_tile(p, everywhere, params, ring, shift)
-        return out
+        return _ridge_tile(p, np.ones(len(p), bool), params, ring)
     tile = params.tile
     key = np.floor(p[:, :2] / tile).astype(np.int64)
     tiles = np.unique(key, axis=0)
@@ -236,7 +219,6 @@ def rail_head_candidates(p_world: F64, params: RidgeParams | None = None) -> NDA
         )
         idx = np.flatnonzero(sel)
         inner = (key[idx, 0] == tx) & (key[idx, 1] == ty)
-        for shift in shifts:
-            out[idx] |= _ridge_tile(p[idx], inner, params, ring, shift)
+        out[idx] |= _ridge_tile(p[idx], inner, params, ring)
     log.debug("rail-head candidates: %d of %d points", int(out.sum()), len(p))
     return out
