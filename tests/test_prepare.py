@@ -191,3 +191,15 @@ def test_one_preparation_per_key(
     assert len({r.key for r in results}) == 1
     assert sorted(bool(r.summary.get("reused")) for r in results) == [False, True, True]
     assert not list((tmp_path / "c").glob(".*tmp*"))
+
+
+def test_pre_registration_keeps_its_own_band_and_voxel() -> None:
+    """The pre-registration registers a narrower band (pre_lateral_limit, 10 m) with coarser
+    voxels than the final cloud (lateral_limit 30 m); both knobs reach register_clouds."""
+    cfg = PrepareConfig()
+    pre, final = cfg.registration_kwargs(False), cfg.registration_kwargs(True)
+    assert pre["lateral_limit"] == 10.0 and final["lateral_limit"] == 30.0
+    assert pre["voxel_size"] == 0.25 and final["voxel_size"] == 0.1
+    wide = cfg.with_overrides(registration={"pre_lateral_limit": None})
+    assert wide.registration_kwargs(False)["lateral_limit"] is None
+    assert wide.config_hash() != cfg.config_hash()
