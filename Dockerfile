@@ -25,7 +25,7 @@ COPY migrations ./migrations
 COPY service ./service
 COPY worker ./worker
 COPY renderer ./renderer
-# Editable-style layout: migrations/ is found next to the package (worker/jobs/migrate.py).
+# Editable-style layout: migrations/ is found next to the package (osdar_platform/migrate.py).
 RUN pip install --no-deps -e . \
  && useradd --create-home --uid 10001 osdar \
  && mkdir -p /data && chown osdar /data

@@ -1,7 +1,7 @@
 """Alembic environment: the URL comes from the settings, never from alembic.ini.
 
 ``config.attributes`` may carry ``connection`` (run on an open connection, e.g. inside a
-test's schema) or ``database_url`` (set by ``worker.jobs.migrate.upgrade``).
+test's schema) or ``database_url`` (set by ``osdar_platform.migrate.upgrade``).
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import logging
 
 from alembic import context
 
-from worker.jobs.models import Base
+from osdar_platform.models import Base
 
 config = context.config
 target_metadata = Base.metadata
@@ -21,7 +21,7 @@ def _url() -> str:
     url = config.attributes.get("database_url")
     if url:
         return str(url)
-    from worker.jobs.settings import get_settings
+    from osdar_platform.settings import get_settings
 
     return str(get_settings().database_url)
 
@@ -54,7 +54,7 @@ def run_migrations_online() -> None:
     if connection is not None:
         _run(connection)
         return
-    from worker.jobs.db import make_engine
+    from osdar_platform.db import make_engine
 
     engine = make_engine(_url())
     try:

@@ -36,8 +36,8 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
 
+from geometry.transforms import invert_T, pose_to_T
 from renderer.mesh import ObjectMesh
-from renderer.transforms import invert_T, pose_to_T
 
 F64 = NDArray[np.float64]
 logger = logging.getLogger(__name__)

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from renderer.camera import CameraModel
+from geometry.camera import CameraModel
 
 log = logging.getLogger(__name__)
 

@@ -48,11 +48,11 @@ import moderngl
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from renderer.camera import TOL, CameraModel, gl_projection
+from geometry.camera import TOL, CameraModel, gl_projection
+from geometry.transforms import invert_T
 from renderer.gl_context import create_context
 from renderer.lighting import Lighting
 from renderer.mesh import ObjectMesh, ProxyMesh
-from renderer.transforms import invert_T
 
 log = logging.getLogger(__name__)
 

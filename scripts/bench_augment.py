@@ -36,8 +36,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from geometry.transforms import invert_T
 from renderer.lidar_cast import hidden_from, origins_from_json, point_origins
-from renderer.transforms import invert_T
 from worker.augmentation.augment import (
     augment,
     cast_frame_lidar,

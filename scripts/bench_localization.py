@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from geometry.poses import PoseTrack
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack
 from worker.preparation.centreline import Centreline
 from worker.preparation.localization import STRATEGIES, make_input, run_strategy
 from worker.preparation.localization.common import relative_motions

@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from worker.malloc_tuning import tune_malloc
+from worker.orchestration.malloc_tuning import tune_malloc
 from worker.osdar.sequence import Sequence
 from worker.preparation.artifact import write_artifact
 from worker.preparation.config import PrepareConfig

@@ -22,14 +22,14 @@ import cv2
 import numpy as np
 import trimesh
 
-from renderer.camera import CameraModel
+from geometry.camera import CameraModel
+from geometry.poses import PoseTrack
+from geometry.transforms import make_T
 from renderer.composite import composite
 from renderer.lighting import estimate_lighting
 from renderer.mesh import ObjectMesh, ProxyMesh
 from renderer.object_render import ObjectRenderer
-from renderer.transforms import make_T
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack
 
 CAMERAS = ("rgb_center", "rgb_highres_center")
 

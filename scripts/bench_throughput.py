@@ -81,12 +81,12 @@ def run_batch(seq_folder: Path, workers: int, jobs: int, root: Path) -> tuple[fl
     import redis
     from fastapi.testclient import TestClient
 
+    from osdar_platform.db import session_scope
+    from osdar_platform.keys import create_api_key
+    from osdar_platform.migrate import upgrade
     from service.app import create_app
-    from worker.jobs.celery_app import make_celery
-    from worker.jobs.db import session_scope
-    from worker.jobs.embedded import embedded_settings, start_worker, stop_worker
-    from worker.jobs.keys import create_api_key
-    from worker.jobs.migrate import upgrade
+    from worker.orchestration.celery_app import make_celery
+    from worker.orchestration.embedded import embedded_settings, start_worker, stop_worker
 
     redis.Redis.from_url(REDIS_URL).flushdb()
     data = root / f"w{workers}"
@@ -145,7 +145,7 @@ def main() -> int:
     ap.add_argument("--redis-url", default=REDIS_URL, help="a Redis DB this run may flush")
     ap.add_argument(
         "--threads", type=int, default=0,
-        help="threads per worker process (0: the workers' own caps, worker/jobs/threads.py)",
+        help="threads per worker process (0: the workers' own caps)",
     )  # fmt: skip
     args = ap.parse_args()
     globals()["REDIS_URL"] = args.redis_url

@@ -13,14 +13,14 @@ from typing import Any
 
 from fastapi import APIRouter, FastAPI
 
+from osdar_platform.db import make_engine, make_sessionmaker
+from osdar_platform.settings import Settings, get_settings
+from osdar_platform.store import store_from_url
 from service.dashboard import install_dashboard
 from service.deps import Dispatcher
 from service.errors import install_handlers
 from service.ratelimit import TokenBuckets
 from service.routers import assets, health, jobs, sequences
-from worker.jobs.db import make_engine, make_sessionmaker
-from worker.jobs.settings import Settings, get_settings
-from worker.jobs.store import store_from_url
 
 log = logging.getLogger(__name__)
 VERSION = "0.1.0"
@@ -41,7 +41,7 @@ def create_app(
 ) -> FastAPI:
     """Build the API for ``settings`` (default: the environment's).
 
-    ``celery_app`` replaces ``worker.jobs.celery_app`` for sending jobs (tests use one on
+    ``celery_app`` replaces ``worker.orchestration.celery_app`` for sending jobs (tests use one on
     an in-memory broker); ``migrate=True`` runs ``alembic upgrade head`` at startup (the
     embedded one-machine mode; deployments run ``osdar-ar migrate`` as a prestart step).
     """
@@ -50,7 +50,7 @@ def create_app(
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if migrate:
-            from worker.jobs.migrate import upgrade
+            from osdar_platform.migrate import upgrade
 
             upgrade(database_url=str(settings.database_url))
         yield

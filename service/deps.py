@@ -11,21 +11,21 @@ from fastapi import Depends, Request, Security
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session, sessionmaker
 
+from osdar_platform.keys import find_api_key
+from osdar_platform.models import ApiKey, JobState
+from osdar_platform.settings import Settings
+from osdar_platform.store import ObjectStore
 from service.errors import TooManyRequests, Unauthorized
 from service.ratelimit import TokenBuckets
-from worker.jobs.keys import find_api_key
-from worker.jobs.models import ApiKey, JobState
-from worker.jobs.queue import enqueue_job, request_cancel
-from worker.jobs.settings import Settings
-from worker.jobs.store import ObjectStore
+from worker.orchestration.queue import enqueue_job, request_cancel
 
 
 @dataclass
 class Dispatcher:
-    """Hands committed jobs to the workers and cancels them (``worker.jobs.queue``)."""
+    """Hands committed jobs to the workers and cancels them (``worker.orchestration.queue``)."""
 
     sessions: sessionmaker[Session]
-    celery_app: Any = None  # None: worker.jobs.celery_app, imported on first use
+    celery_app: Any = None  # None: worker.orchestration.celery_app, imported on first use
 
     def enqueue(self, job_id: str) -> None:
         enqueue_job(job_id, sessions=self.sessions, app=self.celery_app)

@@ -6,8 +6,8 @@ import re
 
 from fastapi.responses import Response, StreamingResponse
 
+from osdar_platform.store import ObjectNotFound, ObjectStore
 from service.errors import NotFound
-from worker.jobs.store import ObjectNotFound, ObjectStore
 
 _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
 

@@ -7,8 +7,8 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from worker.jobs.catalog import BUILTIN_OBJECTS, MESH_FILE_TYPES, STRATEGIES
-from worker.jobs.models import JobState
+from osdar_platform.catalog import BUILTIN_OBJECTS, MESH_FILE_TYPES, STRATEGIES
+from osdar_platform.models import JobState
 
 T = TypeVar("T")
 

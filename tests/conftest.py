@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from worker.shared_data import SHARED_ENV, shared_dir
-from worker.shared_data import real_labels_path as _shared_labels
+from osdar_platform.shared_data import SHARED_ENV, shared_dir
+from osdar_platform.shared_data import real_labels_path as _shared_labels
 
 REAL_LABELS = _shared_labels()
 

@@ -70,7 +70,7 @@ def make_pg_schema(prefix: str = "osdar_test") -> Iterator[PgSchema]:
     """A fresh schema in the test database, migrated; dropped at the end."""
     from sqlalchemy import create_engine, text
 
-    from worker.jobs.migrate import upgrade
+    from osdar_platform.migrate import upgrade
 
     admin = _admin_pg_url()
     schema = f"{prefix}_{uuid.uuid4().hex[:10]}"
@@ -150,7 +150,7 @@ class Api:
         return spec
 
     def new_key(self, name: str) -> str:
-        from worker.jobs.keys import create_api_key
+        from osdar_platform.keys import create_api_key
 
         with self.sessions.begin() as session:
             _, secret = create_api_key(
@@ -163,7 +163,7 @@ class Api:
 
 
 def make_settings(data_dir: Path, database_url: str, **extra: Any) -> Any:
-    from worker.jobs.settings import Settings
+    from osdar_platform.settings import Settings
 
     return Settings(
         data_dir=data_dir,
@@ -186,8 +186,8 @@ def api(
 ) -> Iterator[Api]:
     from fastapi.testclient import TestClient
 
+    from osdar_platform.migrate import upgrade
     from service.app import create_app
-    from worker.jobs.migrate import upgrade
 
     data_dir = tmp_path_factory.mktemp(f"api_{request.param}")
     if request.param == "sqlite":

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from worker.poses import PoseTrack
+from geometry.poses import PoseTrack
 
 STATION = {"scene": "station", "frames": 12, "scale": 0.1, "lidar_density": 0.3, "seed": 0}
 

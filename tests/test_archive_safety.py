@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from worker.jobs.archive_safety import ArchiveLimits, UnsafeArchive, extract_archive
+from osdar_platform.archive_safety import ArchiveLimits, UnsafeArchive, extract_archive
 
 
 def _tar(path: Path, members: list[tuple[tarfile.TarInfo, bytes | None]], mode: str = "w") -> Path:

@@ -16,15 +16,15 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from renderer.camera import CameraModel
-from renderer.transforms import invert_T, transform_points
+from geometry.camera import CameraModel
+from geometry.poses import PoseTrack
+from geometry.transforms import invert_T, transform_points
 from worker.augmentation.augment import augment_frames, finish_augmentation, plan_augmentation
-from worker.augmentation.evaluate_object import truth_prepared
 from worker.augmentation.placement import PlacementError
 from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel
 from worker.cli import main
+from worker.evaluation.object_error import truth_prepared
 from worker.osdar.pcd import read_pcd
-from worker.poses import PoseTrack
 
 pytestmark = pytest.mark.gl
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from renderer.camera import load_cameras
+from geometry.camera import load_cameras
 from tests.synth_fixtures import landmarks, synth_sequence, true_poses
 from worker.osdar.sequence import Sequence
 from worker.preparation.calibration_point import (

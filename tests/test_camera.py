@@ -8,7 +8,7 @@ import logging
 import numpy as np
 import pytest
 
-from renderer.camera import (
+from geometry.camera import (
     T_CAM_OPT,
     CameraModel,
     gl_projection,
@@ -16,8 +16,8 @@ from renderer.camera import (
     undistort_normalized,
     valid_radius,
 )
-from renderer.transforms import invert_T, make_T, quat_to_matrix
-from worker.shared_data import real_labels_path
+from geometry.transforms import invert_T, make_T, quat_to_matrix
+from osdar_platform.shared_data import real_labels_path
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +172,7 @@ def test_distortion_round_trip_with_tangential_terms():
     dist = np.array([-0.0655375, -0.329857, 1e-3, -5e-4, 2.48002])
     rng = np.random.default_rng(1)
     xy = rng.uniform(-0.35, 0.35, (5000, 2))
-    from renderer.camera import distort_normalized
+    from geometry.camera import distort_normalized
 
     back, ok = undistort_normalized(distort_normalized(xy, dist), dist)
     assert ok.all()

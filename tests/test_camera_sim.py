@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from worker.shared_data import real_labels_path
+from osdar_platform.shared_data import real_labels_path
 from worker.synth.scene_mesh import MATERIAL_ID
 
 CALIB = real_labels_path()
@@ -21,7 +21,7 @@ CAMS = ("rgb_center", "rgb_highres_center")
 
 @pytest.fixture(scope="module")
 def setup():
-    from renderer.camera import load_cameras
+    from geometry.camera import load_cameras
     from worker.synth.camera_sim import CameraSimulator
     from worker.synth.scenes import build_scene
 
@@ -38,7 +38,7 @@ def setup():
 
 
 def _optical_z(cam, T_world_base: np.ndarray, p_world: np.ndarray) -> float:
-    from renderer.transforms import invert_T, transform_points
+    from geometry.transforms import invert_T, transform_points
 
     T_opt_world = cam.T_opt_base @ invert_T(T_world_base)
     return float(transform_points(T_opt_world, p_world[None])[0, 2])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from worker.columns import column_max, column_min, finite_rows
+from geometry.columns import column_max, column_min, finite_rows
 
 
 def test_column_reductions_equal_numpys() -> None:

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from geometry.transforms import pose_to_T
 from renderer.composite import blur_sigma_px, composite
 from renderer.lighting import (
     Lighting,
@@ -19,7 +20,6 @@ from renderer.lighting import (
     sun_dir_enu,
 )
 from renderer.object_render import ObjectRender
-from renderer.transforms import pose_to_T
 
 
 def square_render(
@@ -160,9 +160,9 @@ def fire_site(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_estimate_lighting_on_a_synthetic_frame(fire_site: Path):
     """The synthetic renderer's light (camera_sim.py) is known: sky ambient 0.85 x
     (0.42, 0.47, 0.56) on an upward surface, sun 0.85 x (0.95, 0.89, 0.80)."""
-    from renderer.camera import load_cameras
+    from geometry.camera import load_cameras
+    from geometry.poses import PoseTrack
     from worker.osdar.sequence import Sequence
-    from worker.poses import PoseTrack
 
     FIRE_SITE = fire_site
 

@@ -25,8 +25,8 @@ from typing import Any
 import pytest
 from sqlalchemy import update
 
+from osdar_platform.models import ApiKey, Asset, Job, JobEvent, JobState
 from tests.conftest_service import Api, memory_celery
-from worker.jobs.models import ApiKey, Asset, Job, JobEvent, JobState
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [
@@ -139,7 +139,7 @@ def _png(width: int = 24, height: int = 16, colour: tuple[int, int, int] = (200,
 
 
 def _owner_id(sessions: Any, pepper: str, secret: str) -> int:
-    from worker.jobs.keys import find_api_key
+    from osdar_platform.keys import find_api_key
 
     with sessions() as s:
         key = find_api_key(session=s, secret=secret, pepper=pepper)
@@ -442,7 +442,7 @@ def test_logout_needs_the_sessions_form_token(dash: Dash) -> None:
 
 
 def test_a_revoked_key_ends_its_sessions(dash: Dash) -> None:
-    from worker.jobs.keys import revoke_api_key
+    from osdar_platform.keys import revoke_api_key
 
     secret = dash.api.new_key("dash-carol")
     client = dash.client()
@@ -521,14 +521,14 @@ def live(tmp_path_factory: pytest.TempPathFactory, synth_sequence_dir: Path) -> 
     """uvicorn on 127.0.0.1 (SQLite + a local store in tmp) with one real finished job."""
     import uvicorn
 
+    from osdar_platform.db import session_scope
+    from osdar_platform.keys import create_api_key
+    from osdar_platform.migrate import upgrade
     from service.app import create_app
     from service.schemas import JobCreate
     from service.services.sequences import register_sequence
-    from worker.jobs.db import session_scope
-    from worker.jobs.embedded import embedded_settings, free_port
-    from worker.jobs.keys import create_api_key
-    from worker.jobs.migrate import upgrade
-    from worker.jobs.runner import run_job_inline
+    from worker.orchestration.embedded import embedded_settings, free_port
+    from worker.orchestration.runner import run_job_inline
 
     data = tmp_path_factory.mktemp("dashboard_live")
     settings = embedded_settings(data, rate_limit_per_s=10_000, rate_limit_burst=100_000)

@@ -13,11 +13,11 @@ import pytest
 from sqlalchemy import func, inspect, select, text, update
 from sqlalchemy.exc import IntegrityError
 
+from osdar_platform.db import make_engine, make_sessionmaker
+from osdar_platform.keys import create_api_key, find_api_key, hash_secret
+from osdar_platform.models import ApiKey, Job, JobEvent, JobState, Sequence, utcnow
 from tests.conftest_service import PgSchema, make_pg_schema, memory_celery, sent_tasks
-from worker.jobs.db import make_engine, make_sessionmaker
-from worker.jobs.keys import create_api_key, find_api_key, hash_secret
-from worker.jobs.models import ApiKey, Job, JobEvent, JobState, Sequence, utcnow
-from worker.jobs.queue import TASK_RUN_JOB, enqueue_job, request_cancel, requeue_pending
+from worker.orchestration.queue import TASK_RUN_JOB, enqueue_job, request_cancel, requeue_pending
 
 TABLES = {"alembic_version", "api_keys", "sequences", "assets", "jobs", "job_events"}
 
@@ -66,7 +66,7 @@ def _job(sessions: Any, owner: ApiKey, seq: Sequence | None = None, **kw: Any) -
 def test_migrations_create_exactly_the_models(pg: PgSchema) -> None:
     from alembic import command
 
-    from worker.jobs.migrate import alembic_config, current_head
+    from osdar_platform.migrate import alembic_config, current_head
 
     engine = make_engine(pg.url)
     try:
@@ -79,7 +79,7 @@ def test_migrations_create_exactly_the_models(pg: PgSchema) -> None:
 
 
 def test_downgrade_and_upgrade_again() -> None:
-    from worker.jobs.migrate import downgrade, upgrade
+    from osdar_platform.migrate import downgrade, upgrade
 
     for schema in make_pg_schema("osdar_dbdown"):
         downgrade(database_url=schema.url)
@@ -95,7 +95,7 @@ def test_downgrade_and_upgrade_again() -> None:
 def test_sqlite_default_runs_the_same_migrations(tmp_path: Path) -> None:
     from alembic import command
 
-    from worker.jobs.migrate import alembic_config, upgrade
+    from osdar_platform.migrate import alembic_config, upgrade
 
     url = f"sqlite:///{tmp_path}/db/osdar-ar.db"
     upgrade(database_url=url)
@@ -131,9 +131,9 @@ def test_idempotency_key_is_unique_per_owner(sessions: Any) -> None:
 
 
 def test_20_concurrent_idempotent_submissions_make_one_row(sessions: Any) -> None:
+    from osdar_platform.settings import Settings
     from service.schemas import JobCreate
     from service.services.jobs import create_job
-    from worker.jobs.settings import Settings
 
     owner = _owner(sessions, "racer")
     seq = _sequence(sessions, owner)

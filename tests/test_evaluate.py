@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from worker.evaluate import (
+from geometry.poses import PoseTrack
+from worker.evaluation.evaluate import (
     _jitter,
     cloud_for_track,
     evaluate_strategies,
@@ -23,7 +24,6 @@ from worker.evaluate import (
     synthetic_clicks,
 )
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack
 
 CAMS = ["rgb_center", "rgb_highres_center"]
 
@@ -41,7 +41,7 @@ def seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def truth_tracks(seq: Path) -> dict:
     """{"truth": (true poses, cloud registered with them), "jumpy": (poses with a 2 m
     sideways jump from frame 10 on, the same cloud re-registered with them)}."""
-    from worker.geodesy import WorldFrame
+    from geometry.geodesy import WorldFrame
     from worker.preparation.registration import register_clouds
 
     s = Sequence.open(seq)
@@ -179,7 +179,7 @@ def test_cli_errors_exit_2(seq: Path, tmp_path: Path) -> None:
 
 
 def test_evaluate_sequence_keeps_the_job_keys_and_adds_the_paper_rpe(seq: Path, tmp_path) -> None:
-    from worker.evaluate import evaluate_sequence
+    from worker.evaluation.evaluate import evaluate_sequence
     from worker.preparation.config import PrepareConfig
     from worker.preparation.prepare import prepare
 

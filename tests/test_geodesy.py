@@ -6,13 +6,8 @@ import numpy as np
 import pytest
 from pyproj import Geod
 
-from worker.geodesy import (
-    R_ecef_enu,
-    WorldFrame,
-    ecef_to_geodetic,
-    geodetic_to_ecef,
-    world_frame_from_ins,
-)
+from geometry.geodesy import R_ecef_enu, WorldFrame, ecef_to_geodetic, geodetic_to_ecef
+from worker.osdar.ins_poses import world_frame_from_ins
 from worker.osdar.ins_tables import InsPva
 
 HAMBURG = WorldFrame(53.5511, 9.9937, 40.0)

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from renderer.transforms import invert_T
-from worker.geodesy import WorldFrame, world_frame_from_ins
-from worker.poses import InsToLidar, PoseTrack, ins_to_base_poses
+from geometry.geodesy import WorldFrame
+from geometry.poses import InsToLidar, PoseTrack
+from geometry.transforms import invert_T
+from worker.osdar.ins_poses import ins_to_base_poses, world_frame_from_ins
 from worker.synth.ins_sim import (
     HAMBURG,
     IMU_RATE_HZ,

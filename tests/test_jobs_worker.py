@@ -24,9 +24,9 @@ from typing import Any
 import pytest
 from sqlalchemy import select
 
-from worker.jobs.db import session_scope
-from worker.jobs.models import ApiKey, Job, JobEvent, JobState, Sequence
-from worker.jobs.settings import Settings
+from osdar_platform.db import session_scope
+from osdar_platform.models import ApiKey, Job, JobEvent, JobState, Sequence
+from osdar_platform.settings import Settings
 
 REDIS_URL = os.environ.get("OSDAR_AR_TEST_REDIS_URL", "redis://127.0.0.1:6379/13")
 JOB_TIMEOUT_S = 120.0
@@ -34,7 +34,7 @@ JOB_TIMEOUT_S = 120.0
 
 # ---------------------------------------------------------------------------- helpers
 def _settings(data_dir: Path, **extra: Any) -> Settings:
-    from worker.jobs.embedded import embedded_settings
+    from worker.orchestration.embedded import embedded_settings
 
     values: dict[str, Any] = {
         "environment": "test",
@@ -48,7 +48,7 @@ def _settings(data_dir: Path, **extra: Any) -> Settings:
 
 
 def _migrated(settings: Settings) -> Settings:
-    from worker.jobs.migrate import upgrade
+    from osdar_platform.migrate import upgrade
 
     upgrade(database_url=str(settings.database_url))
     return settings
@@ -70,8 +70,8 @@ def _spec(sequence_id: str, **overrides: Any) -> dict[str, Any]:
 
 
 def _owner_and_sequence(settings: Settings, folder: Path) -> tuple[int, str]:
+    from osdar_platform.keys import create_api_key
     from service.services.sequences import register_sequence
-    from worker.jobs.keys import create_api_key
 
     with session_scope(settings) as s:
         key, _ = create_api_key(session=s, name="t", pepper="p")
@@ -144,8 +144,8 @@ def seq_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 # ---------------------------------------------------------------------------- (a) inline
 def test_run_job_inline_end_to_end(tmp_path: Path, seq_folder: Path) -> None:
-    from worker.jobs.runner import run_job_inline
-    from worker.jobs.store import store_from_url
+    from osdar_platform.store import store_from_url
+    from worker.orchestration.runner import run_job_inline
 
     settings = _migrated(_settings(tmp_path))
     owner, seq_id = _owner_and_sequence(settings, seq_folder)
@@ -181,8 +181,8 @@ def test_run_job_inline_end_to_end(tmp_path: Path, seq_folder: Path) -> None:
 def test_publish_twice_keeps_one_result_and_removes_the_losers_object(
     tmp_path: Path, seq_folder: Path
 ) -> None:
-    from worker.jobs import runner, state
-    from worker.jobs.store import store_from_url
+    from osdar_platform.store import store_from_url
+    from worker.orchestration import runner, state
 
     settings = _migrated(_settings(tmp_path))
     owner, seq_id = _owner_and_sequence(settings, seq_folder)
@@ -216,9 +216,9 @@ def test_publish_twice_keeps_one_result_and_removes_the_losers_object(
 
 # ---------------------------------------------------------------------------- (g) cancel
 def test_cancel_a_running_job_between_stages(tmp_path: Path, seq_folder: Path) -> None:
-    from worker.jobs.queue import request_cancel
-    from worker.jobs.runner import run_job_inline
-    from worker.jobs.store import store_from_url
+    from osdar_platform.store import store_from_url
+    from worker.orchestration.queue import request_cancel
+    from worker.orchestration.runner import run_job_inline
 
     settings = _migrated(_settings(tmp_path))
     owner, seq_id = _owner_and_sequence(settings, seq_folder)
@@ -244,7 +244,7 @@ def test_cancel_a_running_job_between_stages(tmp_path: Path, seq_folder: Path) -
 def test_a_stage_error_fails_the_job_with_a_readable_reason(
     tmp_path: Path, seq_folder: Path
 ) -> None:
-    from worker.jobs.runner import run_job_inline
+    from worker.orchestration.runner import run_job_inline
 
     settings = _migrated(_settings(tmp_path))
     owner, seq_id = _owner_and_sequence(settings, seq_folder)
@@ -263,7 +263,7 @@ def test_a_termination_inside_a_stage_leaves_the_job_to_redelivery(
 ) -> None:
     """The pool's SIGTERM surfacing as an ImportError (seen when Redis restarted mid-import):
     the process exits and the job stays RUNNING for redelivery / the reaper, not FAILED."""
-    from worker.jobs.runner import run_job_inline
+    from worker.orchestration.runner import run_job_inline
 
     settings = _migrated(_settings(tmp_path))
     owner, seq_id = _owner_and_sequence(settings, seq_folder)
@@ -282,7 +282,7 @@ def test_finish_killed_while_moving_chunk_files_runs_again(
     (the sigkill scenario caught a FAILED 'FileNotFoundError' here)."""
     import os
 
-    from worker.jobs import runner
+    from worker.orchestration import runner
 
     settings = _migrated(_settings(tmp_path))
     owner, seq_id = _owner_and_sequence(settings, seq_folder)
@@ -321,7 +321,7 @@ def test_finish_killed_while_moving_chunk_files_runs_again(
 
 # ---------------------------------------------------------------------------- (f) config
 def test_celery_config_follows_the_reliability_rules(tmp_path: Path) -> None:
-    from worker.jobs.celery_app import make_celery
+    from worker.orchestration.celery_app import make_celery
 
     settings = Settings(
         data_dir=tmp_path,
@@ -355,7 +355,7 @@ def test_celery_config_follows_the_reliability_rules(tmp_path: Path) -> None:
     vt = default.conf.broker_transport_options["visibility_timeout"]
     assert vt > default.conf.task_time_limit + Settings().visibility_margin_s
     default.loader.import_default_modules()
-    from worker.jobs.tasks import TASK_NAMES
+    from worker.orchestration.tasks import TASK_NAMES
 
     assert set(TASK_NAMES) <= set(default.tasks)
     assert len(set(TASK_NAMES)) == 8 and all(n.startswith("osdar_ar.") for n in TASK_NAMES)
@@ -380,7 +380,7 @@ def _redis_or_skip() -> str:
 
 @contextlib.contextmanager
 def _worker(settings: Settings, log: Path, **kw: Any) -> Iterator[Any]:
-    from worker.jobs.embedded import start_worker, stop_worker
+    from worker.orchestration.embedded import start_worker, stop_worker
 
     proc = start_worker(settings, log_file=log, **kw)
     try:
@@ -430,9 +430,9 @@ def redis_pg(tmp_path: Path) -> Iterator[Settings]:
 def _api(settings: Settings) -> tuple[Any, dict[str, str], Any]:
     from fastapi.testclient import TestClient
 
+    from osdar_platform.keys import create_api_key
     from service.app import create_app
-    from worker.jobs.celery_app import make_celery
-    from worker.jobs.keys import create_api_key
+    from worker.orchestration.celery_app import make_celery
 
     app = create_app(settings, celery_app=make_celery(settings))
     with session_scope(settings) as s:
@@ -470,8 +470,8 @@ def test_real_worker_on_redis_and_postgres(redis_pg: Settings, seq_folder: Path)
 def test_poison_job_fails_after_bounded_deliveries_and_the_queue_drains(
     redis_pg: Settings, seq_folder: Path
 ) -> None:
-    from worker.jobs.celery_app import make_celery
-    from worker.jobs.queue import enqueue_job
+    from worker.orchestration.celery_app import make_celery
+    from worker.orchestration.queue import enqueue_job
 
     settings = redis_pg
     log = Path(settings.data_dir) / "worker.log"
@@ -506,8 +506,8 @@ def test_poison_job_fails_after_bounded_deliveries_and_the_queue_drains(
 def test_embedded_sqlite_broker_worker(tmp_path: Path, seq_folder: Path) -> None:
     import httpx
 
-    from worker.jobs.embedded import Embedded
-    from worker.jobs.keys import create_api_key
+    from osdar_platform.keys import create_api_key
+    from worker.orchestration.embedded import Embedded
 
     settings = _settings(tmp_path / "var")
     with Embedded(settings, log_file=tmp_path / "worker.log") as emb:

@@ -9,10 +9,10 @@ import open3d as o3d
 import pytest
 import trimesh
 
+from geometry.transforms import invert_T, make_T
 from renderer.assets.obstacles import build_obstacle
 from renderer.lidar_cast import cast_object, hidden_from, origins_from_json, point_origins
 from renderer.mesh import ObjectMesh
-from renderer.transforms import invert_T, make_T
 from worker.synth.lidar_sim import LidarSimulator, default_sensors, sensors_to_json
 from worker.synth.scene_mesh import MATERIAL_ID, SceneMesh
 

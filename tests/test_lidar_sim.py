@@ -9,7 +9,7 @@ import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
-from renderer.transforms import invert_T, pose_to_T, transform_points
+from geometry.transforms import invert_T, pose_to_T, transform_points
 from worker.synth.lidar_sim import (
     NOISE_TRUNCATION,
     LidarSimulator,

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from geometry.poses import PoseTrack
 from worker.osdar.pcd import PointCloud, read_pcd, write_pcd
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack
 from worker.preparation.centreline import Centreline
 from worker.preparation.localization import (
     STRATEGIES,
@@ -175,7 +175,7 @@ def test_no_rails_falls_back(seqs: dict) -> None:
 
 
 def test_fused_reports_misalignment(results: dict, seqs: dict) -> None:
-    from worker.poses import InsToLidar
+    from geometry.poses import InsToLidar
 
     est = InsToLidar.from_json(results["fire_site"]["fused"].extras["ins_to_lidar"])
     true = InsToLidar.from_json(

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from renderer.camera import CameraModel, load_cameras
+from geometry.camera import CameraModel, load_cameras
+from geometry.transforms import invert_T, make_T, quat_to_matrix, transform_points
+from osdar_platform.shared_data import real_labels_path
 from renderer.lighting import Lighting
 from renderer.mesh import ObjectMesh, ProxyMesh
 from renderer.object_render import ObjectRender, ObjectRenderer
-from renderer.transforms import invert_T, make_T, quat_to_matrix, transform_points
-from worker.shared_data import real_labels_path
 
 REAL_LABELS = real_labels_path()
 SCALE = 0.25

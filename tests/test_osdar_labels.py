@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from osdar_platform.shared_data import openlabel_schema_path
 from worker.osdar import SequenceError, dump_labels, load_labels, parse_labels, validate_openlabel
 from worker.osdar.labels import encode_labels, pose_to_matrix
-from worker.shared_data import openlabel_schema_path
 
 
 @pytest.fixture(scope="module")

@@ -9,17 +9,17 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from renderer.transforms import make_T
-from worker.geodesy import WorldFrame
-from worker.osdar.ins_tables import InsPva
-from worker.poses import (
+from geometry.geodesy import WorldFrame
+from geometry.poses import (
     InsToLidar,
     PoseTrack,
     R_enu_ins_from_novatel,
-    ins_to_base_poses,
     novatel_attitude_from_R,
     reexpress,
 )
+from geometry.transforms import make_T
+from worker.osdar.ins_poses import ins_to_base_poses
+from worker.osdar.ins_tables import InsPva
 
 HAMBURG = WorldFrame(53.5511, 9.9937, 40.0)
 EX, EY, EZ = np.eye(3)
@@ -206,7 +206,7 @@ def test_single_pose_track() -> None:
 def test_unsorted_and_duplicate_timestamps(caplog: pytest.LogCaptureFixture) -> None:
     Ts = np.tile(np.eye(4), (4, 1, 1))
     Ts[:, 0, 3] = [3.0, 1.0, 2.0, 9.0]
-    with caplog.at_level(logging.WARNING, logger="worker.poses"):
+    with caplog.at_level(logging.WARNING, logger="geometry.poses"):
         track = PoseTrack([3.0, 1.0, 2.0, 2.0], Ts, frame_idx=[3, 1, 2, 22])
     assert "duplicate" in caplog.text
     np.testing.assert_array_equal(track.timestamps, [1.0, 2.0, 3.0])

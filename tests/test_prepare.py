@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from geometry.poses import PoseTrack
 from tests.synth_fixtures import synth_sequence, true_poses
 from worker.cli import main
-from worker.poses import PoseTrack
 from worker.preparation import artifact as art
 from worker.preparation import prepare as prep
 from worker.preparation.calibration_point import Clicks
@@ -161,7 +161,7 @@ def test_one_preparation_per_key(
     def fake_run(seq, config, *, clicks=None, progress=None, key=""):
         calls.append(time.perf_counter())
         time.sleep(0.5)
-        from worker.geodesy import WorldFrame
+        from geometry.geodesy import WorldFrame
         from worker.preparation.registration import RegisteredCloud
 
         cloud = RegisteredCloud(

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from geometry.poses import PoseTrack
 from tests.onnx_models import rust_rail_model
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack
 from worker.preparation.centreline import Centreline
 from worker.preparation.registration import RegisteredCloud, register_clouds
 from worker.preparation.segmentation import SegmentationModel

@@ -43,11 +43,11 @@ def _scenario(name: str, tmp_path: Path, quick: bool = True, **kw: Any) -> dict[
 
 # ---------------------------------------------------------------------------- config
 def test_visibility_timeout_exceeds_the_longest_task_time_limit(tmp_path: Path) -> None:
+    from osdar_platform.retry import backoff_delays
+    from osdar_platform.settings import Settings
     from scripts.reliability.common import reliability_settings
-    from worker.jobs.celery_app import make_celery
-    from worker.jobs.reaper import stale_after_s
-    from worker.jobs.retry import backoff_delays
-    from worker.jobs.settings import Settings
+    from worker.orchestration.celery_app import make_celery
+    from worker.orchestration.reaper import stale_after_s
 
     for settings in (
         Settings(data_dir=tmp_path, broker_url="redis://127.0.0.1:6379/0"),  # the defaults
@@ -56,7 +56,7 @@ def test_visibility_timeout_exceeds_the_longest_task_time_limit(tmp_path: Path) 
         conf = make_celery(settings).conf
         vt = conf.broker_transport_options["visibility_timeout"]
         # every task has the same limits (none overrides them): the global ones are the longest
-        from worker.jobs import tasks
+        from worker.orchestration import tasks
 
         for name in tasks.TASK_NAMES:
             t = getattr(tasks, name.split(".")[1], None)
@@ -86,7 +86,7 @@ class _Flaky:
         self.objects: dict[str, bytes] = {}
 
     def put_bytes(self, key: str, data: bytes) -> None:
-        from worker.jobs.store import StoreError
+        from osdar_platform.store import StoreError
 
         self.calls += 1
         if self.calls <= self.failures:
@@ -94,15 +94,15 @@ class _Flaky:
         self.objects[key] = data
 
     def size(self, key: str) -> int:
-        from worker.jobs.store import ObjectNotFound
+        from osdar_platform.store import ObjectNotFound
 
         self.calls += 1
         raise ObjectNotFound(key)
 
 
 def test_store_calls_retry_with_exponential_backoff(monkeypatch: pytest.MonkeyPatch) -> None:
-    from worker.jobs import retry
-    from worker.jobs.store import ObjectNotFound, StoreError
+    from osdar_platform import retry
+    from osdar_platform.store import ObjectNotFound, StoreError
 
     slept: list[float] = []
     monkeypatch.setattr(retry.time, "sleep", slept.append)
@@ -132,12 +132,12 @@ def test_reaper_requeues_a_stale_running_job_and_fails_it_at_the_delivery_bound(
 ) -> None:
     from sqlalchemy import update
 
+    from osdar_platform.db import session_scope
+    from osdar_platform.migrate import upgrade
+    from osdar_platform.models import ApiKey, Job, JobEvent, JobState, utcnow
+    from osdar_platform.settings import Settings
     from tests.conftest_service import memory_celery, sent_tasks
-    from worker.jobs.db import session_scope
-    from worker.jobs.migrate import upgrade
-    from worker.jobs.models import ApiKey, Job, JobEvent, JobState, utcnow
-    from worker.jobs.reaper import reap
-    from worker.jobs.settings import Settings
+    from worker.orchestration.reaper import reap
 
     settings = Settings(
         data_dir=tmp_path,
@@ -178,10 +178,10 @@ def test_reaper_requeues_a_stale_running_job_and_fails_it_at_the_delivery_bound(
 
 
 def test_reaper_reads_redis_messages(tmp_path: Path) -> None:
+    from osdar_platform.settings import Settings
     from scripts.reliability import common
-    from worker.jobs.celery_app import make_celery
-    from worker.jobs.reaper import broker_messages_text
-    from worker.jobs.settings import Settings
+    from worker.orchestration.celery_app import make_celery
+    from worker.orchestration.reaper import broker_messages_text
 
     if not common.redis_up():
         pytest.skip("Redis not reachable")
@@ -300,7 +300,7 @@ def test_a_chunk_archive_of_another_worker_extracts(tmp_path: Path) -> None:
     ``arcname="."``; their ``.`` member was refused ("empty name") and the job FAILED."""
     import tarfile
 
-    from worker.jobs.archive_safety import ArchiveLimits, UnsafeArchive, extract_archive
+    from osdar_platform.archive_safety import ArchiveLimits, UnsafeArchive, extract_archive
 
     src = tmp_path / "chunk"
     (src / "rgb_center").mkdir(parents=True)

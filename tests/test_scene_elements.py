@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from geometry.poses import PoseTrack
 from tests.synth_fixtures import synth_sequence, true_pole_xy, true_poses
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack
 from worker.preparation.centreline import Centreline
 from worker.preparation.config import PlaneConfig, PoleConfig, PrepareConfig
 from worker.preparation.registration import register_clouds

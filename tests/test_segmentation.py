@@ -73,10 +73,10 @@ def test_bad_config(tmp_path: Path) -> None:
 
 def test_rule_segments_synthetic_rails(tmp_path: Path) -> None:
     """On a synthetic frame the rule model finds the rails the renderer drew."""
-    from renderer.camera import load_cameras
-    from renderer.transforms import invert_T, pose_to_T
+    from geometry.camera import load_cameras
+    from geometry.poses import PoseTrack
+    from geometry.transforms import invert_T, pose_to_T
     from worker.osdar.sequence import Sequence
-    from worker.poses import PoseTrack
     from worker.synth.camera_sim import CameraSimulator
     from worker.synth.generator import SynthConfig, generate
     from worker.synth.scene_mesh import MATERIAL_ID

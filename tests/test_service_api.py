@@ -15,9 +15,9 @@ from typing import Any
 import pytest
 from sqlalchemy import func, select, update
 
+from osdar_platform.models import Job, JobState
 from tests.conftest_service import Api, make_settings, memory_celery, sent_tasks
-from worker.jobs.models import Job, JobState
-from worker.jobs.queue import TASK_RUN_JOB
+from worker.orchestration.queue import TASK_RUN_JOB
 
 TETRA_OBJ = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
 
@@ -553,10 +553,10 @@ def test_rate_limit_is_429_with_retry_after(tmp_path: Path, api: Api) -> None:
 
 
 def test_concurrent_jobs_per_key_is_429(api: Api) -> None:
+    from osdar_platform.models import ApiKey
     from service.errors import TooManyRequests
     from service.schemas import JobCreate
     from service.services.jobs import create_job
-    from worker.jobs.models import ApiKey
 
     who = f"busy-{api.backend}"
     api.new_key(who)
@@ -591,15 +591,15 @@ def test_the_service_imports_no_geometry() -> None:
     heavy = {"numpy", "scipy", "open3d", "cv2", "moderngl", "trimesh", "renderer", "celery"}
     heavy |= {"worker.osdar", "worker.preparation.prepare", "worker.synth"}
     assert not (mods & heavy), sorted(mods & heavy)
-    assert "fastapi" in mods and "worker.jobs.models" in mods
+    assert "fastapi" in mods and "osdar_platform.models" in mods
 
 
 def test_registered_paths_must_lie_under_the_configured_roots(
     api: Api, synth_sequence_dir: Path, tmp_path: Path
 ) -> None:
+    from osdar_platform.models import ApiKey
     from service.errors import Invalid
     from service.services.sequences import register_sequence
-    from worker.jobs.models import ApiKey
 
     with api.sessions() as session:
         owner = session.scalar(select(ApiKey).where(ApiKey.name == "alice"))

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from sqlalchemy import select
 
+from osdar_platform.settings import get_settings
 from worker.cli import main
-from worker.jobs.settings import get_settings
 
 
 @pytest.fixture
@@ -23,9 +23,9 @@ def env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
 
 
 def test_migrate_then_create_list_revoke_a_key(env: Path, capsys: pytest.CaptureFixture) -> None:
-    from worker.jobs.db import session_scope
-    from worker.jobs.keys import find_api_key
-    from worker.jobs.models import ApiKey
+    from osdar_platform.db import session_scope
+    from osdar_platform.keys import find_api_key
+    from osdar_platform.models import ApiKey
 
     assert main(["migrate"]) == 0
     assert (env / "osdar-ar.db").is_file()

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from worker.jobs.settings import DEFAULT_PEPPER, Settings, get_settings
+from osdar_platform.settings import DEFAULT_PEPPER, Settings, get_settings
 
 
 @pytest.fixture(autouse=True)
@@ -104,7 +104,7 @@ def test_get_settings_is_cached(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_celery_side_agrees_with_the_catalog() -> None:
     """The names the API validates against are the pipeline's own."""
-    from worker.jobs.catalog import STRATEGIES
+    from osdar_platform.catalog import STRATEGIES
     from worker.preparation.localization import STRATEGIES as PIPELINE_STRATEGIES
 
     assert tuple(STRATEGIES) == tuple(PIPELINE_STRATEGIES)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from worker.shared_data import SHARED_ENV, real_labels_path, shared_dir
+from osdar_platform.shared_data import SHARED_ENV, real_labels_path, shared_dir
 
 
 def test_default_is_beside_the_checkout(monkeypatch: pytest.MonkeyPatch) -> None:

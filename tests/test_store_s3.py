@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from worker.jobs.settings import Settings
-from worker.jobs.store import LocalStore, ObjectNotFound, ObjectStore, S3Store, store_from_url
+from osdar_platform.settings import Settings
+from osdar_platform.store import LocalStore, ObjectNotFound, ObjectStore, S3Store, store_from_url
 
 
 def _free_port() -> int:
@@ -125,7 +125,7 @@ def test_s3_object_appears_only_complete(s3_endpoint: str, tmp_path: Path) -> No
 
 
 def test_unreachable_s3_is_a_store_error(tmp_path: Path) -> None:
-    from worker.jobs.store import StoreError
+    from osdar_platform.store import StoreError
 
     settings = _s3_settings(f"http://127.0.0.1:{_free_port()}", "x")
     store = store_from_url(str(settings.store_url), settings)

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from renderer.camera import CameraModel, load_cameras
-from renderer.transforms import transform_points
+from geometry.camera import CameraModel, load_cameras
+from geometry.poses import PoseTrack
+from geometry.transforms import transform_points
 from worker.osdar.labels import validate_openlabel
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack
 from worker.synth.generator import SynthConfig, generate
 
 pytestmark = pytest.mark.gl
@@ -72,7 +72,7 @@ def test_landmark_pixels_land_on_the_landmark(small_seq):
     T_W_S[:3, 3] = meta["T_world_scene"]["translation"]
     # The scene frame differs from the world frame by a rotation of micro-radians only;
     # rebuild the scene deterministically and render depth with the true poses.
-    from renderer.transforms import pose_to_T
+    from geometry.transforms import pose_to_T
 
     T_W_S = pose_to_T(meta["T_world_scene"]["translation"], meta["T_world_scene"]["quaternion"])
     scene = build_scene(meta["scene"], seed=meta["seed"], length_m=_driven_length(meta))

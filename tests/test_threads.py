@@ -1,10 +1,10 @@
-"""Thread caps of the worker processes (worker/jobs/threads.py)."""
+"""Thread caps of the worker processes (worker/orchestration/threads.py)."""
 
 from __future__ import annotations
 
 import os
 
-from worker.jobs.threads import THREAD_VARS, thread_caps
+from worker.orchestration.threads import THREAD_VARS, thread_caps
 
 
 def test_caps_split_the_cores_between_processes(monkeypatch) -> None:

@@ -163,7 +163,7 @@ def _add_info(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from worker.sequence_summary import summarize
+    from worker.osdar.summary import summarize
 
     summary = summarize(args.sequence)
     if args.json:
@@ -318,10 +318,10 @@ def _add_serve(sub: argparse._SubParsersAction) -> None:
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from worker.jobs.settings import get_settings
+    from osdar_platform.settings import get_settings
 
     if not args.no_migrate:
-        from worker.jobs.migrate import upgrade
+        from osdar_platform.migrate import upgrade
 
         upgrade(database_url=str(get_settings().database_url))
     uvicorn.run("service.app:app", host=args.host, port=args.port, workers=args.workers)
@@ -343,11 +343,11 @@ def _add_worker(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_worker(args: argparse.Namespace) -> int:
-    from worker.jobs.threads import thread_caps
+    from worker.orchestration.threads import thread_caps
 
     # Before anything imports numpy: the prefork children inherit the caps.
     os.environ.update(thread_caps(args.concurrency))
-    from worker.jobs.celery_app import QUEUE, celery_app
+    from worker.orchestration.celery_app import QUEUE, celery_app
 
     argv = ["worker", "--pool", args.pool, "--queues", QUEUE, "--loglevel", args.loglevel]
     if args.concurrency is not None:
@@ -417,8 +417,8 @@ def _pose_error_rows(prepared: Any, seq_folder: Path) -> list[dict[str, Any]]:
     """True pose errors (m, deg) per track against SEQ/ground_truth/poses.csv."""
     import numpy as np
 
-    from worker.geodesy import WorldFrame
-    from worker.poses import PoseTrack, reexpress
+    from geometry.geodesy import WorldFrame
+    from geometry.poses import PoseTrack, reexpress
 
     gt_dir = seq_folder / "ground_truth"
     gt = PoseTrack.from_csv(gt_dir / "poses.csv")
@@ -732,9 +732,9 @@ def _add_keys(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_keys_create(args: argparse.Namespace) -> int:
-    from worker.jobs.db import session_scope
-    from worker.jobs.keys import create_api_key
-    from worker.jobs.settings import get_settings
+    from osdar_platform.db import session_scope
+    from osdar_platform.keys import create_api_key
+    from osdar_platform.settings import get_settings
 
     settings = get_settings()
     try:
@@ -755,9 +755,9 @@ def cmd_keys_create(args: argparse.Namespace) -> int:
 def cmd_keys_list(args: argparse.Namespace) -> int:
     from sqlalchemy import select
 
-    from worker.jobs.db import session_scope
-    from worker.jobs.models import ApiKey
-    from worker.jobs.settings import get_settings
+    from osdar_platform.db import session_scope
+    from osdar_platform.models import ApiKey
+    from osdar_platform.settings import get_settings
 
     with session_scope(get_settings()) as session:
         for k in session.scalars(select(ApiKey).order_by(ApiKey.id)):
@@ -767,9 +767,9 @@ def cmd_keys_list(args: argparse.Namespace) -> int:
 
 
 def cmd_keys_revoke(args: argparse.Namespace) -> int:
-    from worker.jobs.db import session_scope
-    from worker.jobs.keys import revoke_api_key
-    from worker.jobs.settings import get_settings
+    from osdar_platform.db import session_scope
+    from osdar_platform.keys import revoke_api_key
+    from osdar_platform.settings import get_settings
 
     with session_scope(get_settings()) as session:
         if not revoke_api_key(session=session, key_id=args.key_id):
@@ -788,8 +788,8 @@ def _add_migrate(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_migrate(args: argparse.Namespace) -> int:
-    from worker.jobs.migrate import upgrade
-    from worker.jobs.settings import get_settings
+    from osdar_platform.migrate import upgrade
+    from osdar_platform.settings import get_settings
 
     url = str(get_settings().database_url)
     upgrade(database_url=url, revision=args.revision)
@@ -839,7 +839,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     import time
 
-    from worker.evaluate import (
+    from worker.evaluation.evaluate import (
         evaluate_strategies,
         plot_rpe_by_strategy,
         render_overlays,

@@ -19,11 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from renderer.camera import CameraModel
-from worker.geodesy import world_frame_from_ins
-from worker.landmark_error import landmark_errors
+from geometry.camera import CameraModel
+from geometry.poses import PoseTrack
+from worker.evaluation.landmark_error import landmark_errors
+from worker.osdar.ins_poses import ins_to_base_poses, world_frame_from_ins
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack, ins_to_base_poses
 from worker.synth.generator import SynthConfig, generate
 
 log = logging.getLogger(__name__)
@@ -116,9 +116,9 @@ def run_service_demo(
     """
     import httpx
 
-    from worker.jobs.db import session_scope
-    from worker.jobs.embedded import Embedded, embedded_settings
-    from worker.jobs.keys import create_api_key
+    from osdar_platform.db import session_scope
+    from osdar_platform.keys import create_api_key
+    from worker.orchestration.embedded import Embedded, embedded_settings
 
     workdir = Path(workdir).resolve()
     data = workdir / "var"

@@ -33,8 +33,8 @@ def _tar_of(folder: Path) -> bytes:
 def _fake_publish(settings: Any, store: Any, job_id: str) -> None:
     from sqlalchemy import update
 
-    from worker.jobs.db import session_scope
-    from worker.jobs.models import Job, JobState
+    from osdar_platform.db import session_scope
+    from osdar_platform.models import Job, JobState
 
     key = f"jobs/{job_id}/attempt-1/archive.tar.gz"
     store.put_bytes(key, b"alice's archive")

@@ -87,7 +87,7 @@ def pg_database(prefix: str = "osdar_rel") -> Iterator[str]:
     """A fresh, migrated schema in the test database (its URL); dropped at the end."""
     from sqlalchemy import create_engine, text
 
-    from worker.jobs.migrate import upgrade
+    from osdar_platform.migrate import upgrade
 
     admin = pg_admin_url()
     schema = f"{prefix}_{uuid.uuid4().hex[:10]}"
@@ -100,7 +100,7 @@ def pg_database(prefix: str = "osdar_rel") -> Iterator[str]:
         upgrade(database_url=rendered)
         yield rendered
     finally:
-        from worker.jobs.db import _engine_for
+        from osdar_platform.db import _engine_for
 
         _engine_for.cache_clear()
         with engine.begin() as conn:
@@ -170,7 +170,7 @@ def synth_sequence(folder: Path, frames: int = 4) -> Path:
 
 def reliability_settings(data_dir: Path, **overrides: Any) -> Any:
     """Settings of the scenarios: environment "test", short limits, no API throttling."""
-    from worker.jobs.embedded import embedded_settings
+    from worker.orchestration.embedded import embedded_settings
 
     values: dict[str, Any] = {
         "environment": "test",
@@ -194,8 +194,8 @@ def reliability_settings(data_dir: Path, **overrides: Any) -> Any:
 
 
 def new_api_key(settings: Any, name: str = "rel") -> str:
-    from worker.jobs.db import session_scope
-    from worker.jobs.keys import create_api_key
+    from osdar_platform.db import session_scope
+    from osdar_platform.keys import create_api_key
 
     with session_scope(settings) as s:
         _, secret = create_api_key(
@@ -220,8 +220,8 @@ def job_spec(sequence_id: str, **overrides: Any) -> dict[str, Any]:
 def job_rows(settings: Any, ids: list[str]) -> dict[str, Any]:
     from sqlalchemy import select
 
-    from worker.jobs.db import session_scope
-    from worker.jobs.models import Job
+    from osdar_platform.db import session_scope
+    from osdar_platform.models import Job
 
     with session_scope(settings) as s:
         return {j.id: j for j in s.scalars(select(Job).where(Job.id.in_(ids)))}
@@ -230,8 +230,8 @@ def job_rows(settings: Any, ids: list[str]) -> dict[str, Any]:
 def job_events(settings: Any, job_id: str) -> list[Any]:
     from sqlalchemy import select
 
-    from worker.jobs.db import session_scope
-    from worker.jobs.models import JobEvent
+    from osdar_platform.db import session_scope
+    from osdar_platform.models import JobEvent
 
     with session_scope(settings) as s:
         return list(
@@ -286,7 +286,7 @@ class Workers:
     deaths_seen: int = 0
 
     def start(self) -> subprocess.Popen[bytes]:
-        from worker.jobs.embedded import start_worker
+        from worker.orchestration.embedded import start_worker
 
         proc = start_worker(
             self.settings, pool="prefork", concurrency=self.concurrency, log_file=self.log_file
@@ -333,7 +333,7 @@ class Workers:
         return proc.pid
 
     def stop(self) -> None:
-        from worker.jobs.embedded import stop_worker
+        from worker.orchestration.embedded import stop_worker
 
         for proc in self.procs:
             stop_worker(proc, timeout_s=20)
@@ -362,7 +362,7 @@ class ApiServer:
     """The API under uvicorn in a thread of this process, on a free loopback port."""
 
     def __init__(self, settings: Any, celery_app: Any = None, **uvicorn_kw: Any) -> None:
-        from worker.jobs.embedded import free_port
+        from worker.orchestration.embedded import free_port
 
         self.settings = settings
         self.celery_app = celery_app
@@ -380,7 +380,7 @@ class ApiServer:
         import uvicorn
 
         from service.app import create_app
-        from worker.jobs.celery_app import make_celery
+        from worker.orchestration.celery_app import make_celery
 
         celery = self.celery_app if self.celery_app is not None else make_celery(self.settings)
         self.app = create_app(self.settings, celery_app=celery)

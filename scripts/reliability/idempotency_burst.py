@@ -22,8 +22,8 @@ def run(
 ) -> dict[str, Any]:
     from sqlalchemy import func, select
 
-    from worker.jobs.db import session_scope
-    from worker.jobs.models import Job
+    from osdar_platform.db import session_scope
+    from osdar_platform.models import Job
 
     n = n or 100  # the figure asked for, in both forms (it takes seconds)
     seq = c.synth_sequence(workdir / "seq" / "fire_site_rel")

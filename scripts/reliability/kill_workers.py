@@ -27,7 +27,7 @@ NAME = "kill_workers"
 def run(
     workdir: Path, *, quick: bool = False, seed: int = 0, kills: int | None = None
 ) -> dict[str, Any]:
-    from worker.jobs.store import store_from_url
+    from osdar_platform.store import store_from_url
 
     n = kills or (3 if quick else 20)
     rng = random.Random(seed)

@@ -69,7 +69,7 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
             settings, celery_app=Celery("st", broker="memory://", set_as_current=False)
         )
         counter = StatusCounter(app)
-        port = __import__("worker.jobs.embedded", fromlist=["free_port"]).free_port()
+        port = __import__("worker.orchestration.embedded", fromlist=["free_port"]).free_port()
         server = uvicorn.Server(
             uvicorn.Config(counter, host="127.0.0.1", port=port, log_level="error")
         )

@@ -3,7 +3,7 @@
 The store is S3 on moto's server (loopback, in this process); workers are prefork on
 Redis + PostgreSQL. For each job, the S3 server is stopped when the job reaches its
 ``package`` or ``publish`` stage and started again ``outage`` seconds later. The
-worker's store calls retry with exponential backoff (worker/jobs/retry.py; every retry
+worker's store calls retry with exponential backoff (osdar_platform/retry.py; every retry
 is a ``store_retry`` job event). Meanwhile a watcher reads the API and, whenever S3 is
 up, every archive object in the bucket, and checks each is a complete tar.gz.
 Figures: jobs lost, retries and their delays, archives per job, partial archives seen.
@@ -31,7 +31,7 @@ class Moto:
     (its state lives in this process, so objects survive the outage)."""
 
     def __init__(self) -> None:
-        from worker.jobs.embedded import free_port
+        from worker.orchestration.embedded import free_port
 
         self.port = free_port()
         self.server: Any = None
@@ -77,7 +77,7 @@ def _complete(store: Any, key: str) -> bool:
 
 
 def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
-    from worker.jobs.store import S3Store, store_from_url
+    from osdar_platform.store import S3Store, store_from_url
 
     n_jobs, outage = (2, 8.0) if quick else (5, 20.0)
     seq = c.synth_sequence(workdir / "seq" / "fire_site_rel")

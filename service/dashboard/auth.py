@@ -25,12 +25,12 @@ from fastapi import Depends, Request
 from fastapi.responses import JSONResponse, RedirectResponse, Response
 from itsdangerous import BadSignature, URLSafeTimedSerializer
 
+from osdar_platform.keys import find_api_key
+from osdar_platform.models import ApiKey
+from osdar_platform.settings import Settings
 from service.deps import SessionDep, SettingsDep
 from service.errors import TooManyRequests
 from service.ratelimit import TokenBuckets
-from worker.jobs.keys import find_api_key
-from worker.jobs.models import ApiKey
-from worker.jobs.settings import Settings
 
 BASE = "/dashboard"
 SESSION_COOKIE = "osdar_dash"

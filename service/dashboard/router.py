@@ -35,6 +35,7 @@ from fastapi import Path as PathParam
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
 
+from osdar_platform.models import JobState
 from service.dashboard import auth
 from service.dashboard.auth import BASE, ApiUser, DashSession, PageUser
 from service.deps import SessionDep, SettingsDep, StoreDep
@@ -44,7 +45,6 @@ from service.services import assets as svc_assets
 from service.services import dashboard as view
 from service.services import jobs as svc_jobs
 from service.services import sequences as svc_sequences
-from worker.jobs.models import JobState
 
 HERE = Path(__file__).parent
 PAGE_SIZE = 50

@@ -6,12 +6,12 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Path, Query, Response, status
 
+from osdar_platform.models import JobState
 from service.deps import CurrentKey, DispatcherDep, SessionDep, SettingsDep, StoreDep
 from service.downloads import download_responses, stream_object
 from service.routers.common import AUTH_ERRORS, CONFLICT, INVALID, NOT_FOUND, Limit, Offset
 from service.schemas import JobCreate, JobEventPublic, JobPublic, Page
 from service.services import jobs as svc
-from worker.jobs.models import JobState
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], responses=AUTH_ERRORS)
 

@@ -7,10 +7,10 @@ from pathlib import Path
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from osdar_platform.models import ACTIVE_STATES, ApiKey, Asset, Job, new_id
+from osdar_platform.settings import Settings
+from osdar_platform.store import ObjectStore
 from service.errors import Conflict, Invalid, NotFound
-from worker.jobs.models import ACTIVE_STATES, ApiKey, Asset, Job, new_id
-from worker.jobs.settings import Settings
-from worker.jobs.store import ObjectStore
 
 
 def create_asset(
@@ -25,7 +25,7 @@ def create_asset(
     store: ObjectStore,
 ) -> Asset:
     """Load the mesh with its explicit file type (caps on vertices and faces), store it."""
-    from worker.jobs.inspect import InspectionError, inspect_mesh  # trimesh, lazily
+    from worker.orchestration.inspect import InspectionError, inspect_mesh  # trimesh, lazily
 
     try:
         info = inspect_mesh(

@@ -16,11 +16,11 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from worker.jobs.models import ApiKey, Job, JobState, Sequence
+from osdar_platform.models import ApiKey, Job, JobState, Sequence
 
 #: At most this many jobs in one progress poll.
 MAX_POLL_IDS = 100
-#: Preview file names written by ``worker/package.py`` and ``worker/evaluate.py``.
+#: Preview file names written by ``worker/packaging.py`` and ``worker/evaluation/evaluate.py``.
 _FRAME_PREVIEW = re.compile(r"^(?P<name>[A-Za-z0-9_]+?)_(?P<frame>\d+)\.(?:png|jpe?g)$")
 _LIDAR_BEV = "lidar_bev"
 _PLOT_NAME = "rpe_jitter.png"

@@ -1,6 +1,6 @@
 """Jobs: submission (checked against the sequence, idempotent), status, cancel, results.
 
-The workers never call these: they write job state through ``worker/jobs/state.py``.
+The workers never call these: they write job state through ``worker/orchestration/state.py``.
 """
 
 from __future__ import annotations
@@ -14,9 +14,7 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from service.errors import Conflict, Invalid, NotFound, TooManyRequests
-from service.schemas import JobCreate
-from worker.jobs.models import (
+from osdar_platform.models import (
     ACTIVE_STATES,
     ApiKey,
     Asset,
@@ -26,7 +24,9 @@ from worker.jobs.models import (
     Sequence,
     new_id,
 )
-from worker.jobs.settings import Settings
+from osdar_platform.settings import Settings
+from service.errors import Conflict, Invalid, NotFound, TooManyRequests
+from service.schemas import JobCreate
 
 log = logging.getLogger(__name__)
 
@@ -180,7 +180,7 @@ def submit_job(
 ) -> tuple[Job, bool]:
     """:func:`create_job`, then hand a new job to the workers (after the commit).
 
-    A failed send leaves the job PENDING (``worker.jobs.queue.requeue_pending`` retries);
+    A failed send leaves the job PENDING (``worker.orchestration.queue.requeue_pending`` retries);
     the client still gets the job.
     """
     job, created = create_job(

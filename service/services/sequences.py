@@ -9,16 +9,16 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from osdar_platform.archive_safety import ArchiveLimits, UnsafeArchive, extract_archive
+from osdar_platform.models import ACTIVE_STATES, ApiKey, Job, Sequence, new_id
+from osdar_platform.settings import Settings
+from osdar_platform.store import ObjectStore
 from service.errors import Conflict, Invalid, NotFound
-from worker.jobs.archive_safety import ArchiveLimits, UnsafeArchive, extract_archive
-from worker.jobs.models import ACTIVE_STATES, ApiKey, Job, Sequence, new_id
-from worker.jobs.settings import Settings
-from worker.jobs.store import ObjectStore
 
 
 def _inspect(folder: Path, loc: tuple[str | int, ...]) -> dict[str, Any]:
     # The pipeline (numpy, the OSDaR23 reader) is imported here, at request time only.
-    from worker.jobs.inspect import InspectionError, inspect_sequence
+    from worker.orchestration.inspect import InspectionError, inspect_sequence
 
     try:
         return inspect_sequence(folder)

@@ -19,8 +19,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from geometry.transforms import invert_T, matrix_to_quat, transform_points
 from renderer.mesh import ObjectMesh
-from renderer.transforms import invert_T, matrix_to_quat, transform_points
 from worker.osdar.labels import frame_intervals
 
 F64 = NDArray[np.float64]

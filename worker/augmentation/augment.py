@@ -44,10 +44,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from renderer.camera import CameraModel, load_cameras
+from geometry.camera import CameraModel, load_cameras
+from geometry.transforms import invert_T, transform_points
 from renderer.lighting import Lighting, estimate_lighting, sun_dir_enu
 from renderer.mesh import ObjectMesh, ProxyMesh
-from renderer.transforms import invert_T, transform_points
 from worker.augmentation.annotations import (
     CameraView,
     FrameAnnotation,
@@ -909,7 +909,7 @@ def finish_augmentation(
             "warnings": list(plan.warnings),
         }
         if evaluate and (seq_root / "ground_truth").is_dir():
-            from worker.augmentation.evaluate_object import evaluate_object
+            from worker.evaluation.object_error import evaluate_object
 
             tic = time.perf_counter()
             try:
@@ -1002,7 +1002,7 @@ def load_render_setup(cam: CameraModel, cache_dir: str | Path | None) -> None:
     storing it there on a miss. The remap depends only on the intrinsics, so every job
     on the same cameras shares it.
 
-    Uses renderer.camera's private cache (``_SETUP_CACHE``, ``_camera_key``): the
+    Uses geometry.camera's private cache (``_SETUP_CACHE``, ``_camera_key``): the
     renderer has no public hook for a precomputed setup.
     """
     from renderer import camera as cam_mod

@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from geometry.transforms import make_T, transform_points
 from renderer.mesh import ObjectMesh, ProxyMesh
-from renderer.transforms import make_T, transform_points
 
 F64 = NDArray[np.float64]
 

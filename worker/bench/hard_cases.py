@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from worker.shared_data import real_labels_path
+from osdar_platform.shared_data import real_labels_path
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +111,7 @@ class HardContext:
 
     def real_cameras(self) -> dict[str, Any]:
         if self._cams is None:
-            from renderer.camera import load_cameras
+            from geometry.camera import load_cameras
 
             if not REAL_LABELS.is_file():
                 raise FileNotFoundError(f"{REAL_LABELS} not available")
@@ -145,7 +145,7 @@ def _ego(folder: Path) -> Any:
 
 
 def _truth(folder: Path) -> Any:
-    from worker.poses import PoseTrack
+    from geometry.poses import PoseTrack
 
     return PoseTrack.from_csv(folder / "ground_truth/poses.csv")
 
@@ -205,14 +205,14 @@ def _box(size: tuple[float, float, float]) -> Any:
 
 
 def _vehicle(origin: np.ndarray | None = None) -> np.ndarray:
-    from renderer.transforms import make_T, quat_to_matrix
+    from geometry.transforms import make_T, quat_to_matrix
 
     R = quat_to_matrix([0.01, -0.02, np.sin(0.35), np.cos(0.35)])
     return make_T(R, np.array([12.0, -7.0, 0.4]) + (0.0 if origin is None else origin))
 
 
 def _place(T_wb: np.ndarray, p_base: tuple[float, float, float]) -> np.ndarray:
-    from renderer.transforms import make_T
+    from geometry.transforms import make_T
 
     return T_wb @ make_T(np.eye(3), p_base)
 
@@ -243,8 +243,8 @@ def case_1(ctx: HardContext) -> dict[str, Any]:
 
 
 def case_7(ctx: HardContext) -> dict[str, Any]:
+    from geometry.transforms import make_T, transform_points
     from renderer.object_render import ObjectRenderer
-    from renderer.transforms import make_T, transform_points
 
     title = "object partly outside, behind the camera, crossing the near plane, at 2 m"
     cam = ctx.real_cameras()["rgb_center"].scaled(0.25)
@@ -306,7 +306,7 @@ def case_11(ctx: HardContext) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------------- camera, poses
 def case_8(ctx: HardContext) -> dict[str, Any]:
-    from renderer.camera import CameraModel
+    from geometry.camera import CameraModel
 
     title = "real distortion with k3 up to 2.48 (rgb_highres_right)"
     cam = ctx.real_cameras()["rgb_highres_right"]
@@ -332,9 +332,9 @@ def case_8(ctx: HardContext) -> dict[str, Any]:
 
 
 def case_9(ctx: HardContext) -> dict[str, Any]:
-    from renderer.transforms import quat_to_matrix
+    from geometry.poses import PoseTrack
+    from geometry.transforms import quat_to_matrix
     from worker.osdar.labels import pose_to_matrix
-    from worker.poses import PoseTrack
 
     title = "non-unit or sign-flipping quaternions in the input"
     rng = np.random.default_rng(3)
@@ -493,9 +493,9 @@ def case_10(ctx: HardContext) -> dict[str, Any]:
 
 
 def case_12(ctx: HardContext) -> dict[str, Any]:
-    from worker.landmark_error import landmark_errors
+    from geometry.poses import PoseTrack
+    from worker.evaluation.landmark_error import landmark_errors
     from worker.osdar.sequence import Sequence
-    from worker.poses import PoseTrack
 
     title = "different timestamps per sensor within one frame"
     folder = ctx.sequence("fire_site", scene="fire_site")
@@ -503,7 +503,7 @@ def case_12(ctx: HardContext) -> dict[str, Any]:
     gt = folder / "ground_truth"
     dense = PoseTrack.from_csv(gt / "poses_dense.csv")
     meta = json.loads((gt / "meta.json").read_text())
-    from renderer.camera import CameraModel
+    from geometry.camera import CameraModel
 
     cam = CameraModel.from_json(meta["cameras_full_resolution"]["rgb_highres_center"])
     lms = json.loads((gt / "landmarks.json").read_text())

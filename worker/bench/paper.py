@@ -1,7 +1,7 @@
 """The paper's table (OSDAR23.md) and ours on the synthetic counterparts of its sequences.
 
 One row per (sequence, camera, strategy): RPE and jitter mean and std in pixels at the
-camera's full resolution (:func:`worker.evaluate.evaluate_strategies`, landmarks 30-80 m
+camera's full resolution (:func:`worker.evaluation.evaluate.evaluate_strategies`, landmarks 30-80 m
 ahead clicked at their true pixels) and the seconds of a full preparation with that
 strategy (no cache; KISS-ICP included for every strategy).
 """
@@ -102,7 +102,7 @@ def run_sequence(
     seq: Path, scene: str, s: BenchSettings, prepared_out: dict | None = None
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Rows of one sequence (every strategy, both cameras) and its evaluation metrics."""
-    from worker.evaluate import evaluate_strategies
+    from worker.evaluation.evaluate import evaluate_strategies
 
     tracks, prep, world = {}, {}, None
     for strat in s.strategies:

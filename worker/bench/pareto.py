@@ -24,7 +24,7 @@ def run_configs(
     """[{config, strategy, voxel_size, seconds, error_px, jitter_px}] for each config;
     ``known`` {config name: {"seconds", "error_px", "jitter_px"}} is reused, not rerun."""
     from worker.bench.paper import prepare_timed
-    from worker.evaluate import evaluate_strategies
+    from worker.evaluation.evaluate import evaluate_strategies
 
     out = []
     for strategy, voxel in configs:

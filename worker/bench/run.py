@@ -176,7 +176,7 @@ def run_bench(
 
 
 def _write_per_frame(path: Path, rows: list[dict[str, Any]]) -> None:
-    from worker.evaluate import write_rows_csv
+    from worker.evaluation.evaluate import write_rows_csv
 
     write_rows_csv(rows, path)
 
@@ -194,7 +194,7 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 def _write(result: dict[str, Any], json_path: Path | None) -> None:
     if json_path is None:
         return
-    from worker.evaluate import _finite
+    from worker.evaluation.evaluate import _finite
 
     json_path = Path(json_path)
     json_path.parent.mkdir(parents=True, exist_ok=True)

@@ -2,7 +2,7 @@
 
 One row per record, columns as (n,) arrays, units exactly as in the CSV files
 (degrees for angles, metres, m/s); see ../shared/design/OSDAR23.md. Conversion to
-radians and to poses happens in ``worker.poses``, never here.
+radians and to poses happens in ``geometry.poses``, never here.
 """
 
 from __future__ import annotations

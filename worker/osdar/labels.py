@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from renderer.transforms import openlabel_pose_to_T
+from geometry.transforms import openlabel_pose_to_T
+from osdar_platform.shared_data import openlabel_schema_path
 from worker.osdar.errors import SequenceError, atomic_write_bytes
-from worker.shared_data import openlabel_schema_path
 
 logger = logging.getLogger(__name__)
 
@@ -344,7 +344,7 @@ def validate_openlabel(raw: dict[str, Any], schema_path: str | Path | None = Non
     raw : dict
         The document.
     schema_path : str or Path, optional
-        Default :func:`worker.shared_data.openlabel_schema_path` (``../shared`` or
+        Default :func:`osdar_platform.shared_data.openlabel_schema_path` (``../shared`` or
         ``$OSDAR_AR_SHARED``).
 
     Returns

@@ -45,8 +45,8 @@ from typing import Any
 
 import numpy as np
 
-from worker.geodesy import WorldFrame
-from worker.poses import PoseTrack
+from geometry.geodesy import WorldFrame
+from geometry.poses import PoseTrack
 from worker.preparation.calibration_point import CalibrationPoint
 from worker.preparation.centreline import Centreline
 from worker.preparation.registration import RegisteredCloud

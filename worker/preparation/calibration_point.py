@@ -63,8 +63,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from renderer.camera import CameraModel
-from worker.poses import PoseTrack
+from geometry.camera import CameraModel
+from geometry.poses import PoseTrack
 from worker.preparation.config import CalibrationConfig
 from worker.preparation.scene_elements import Pole
 

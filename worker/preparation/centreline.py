@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import CubicSpline
 
-from worker.columns import column_max, column_min
+from geometry.columns import column_max, column_min
 
 F64 = NDArray[np.float64]
 

@@ -17,9 +17,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-#: Strategy names accepted by ``strategy`` (the localization package's ``STRATEGIES``;
-#: repeated here so that the config validates without importing the heavy package).
-STRATEGY_NAMES = ("ins", "odometry", "rails", "fused", "auto")
+from osdar_platform.catalog import STRATEGY_NAMES
 
 
 class _Section(BaseModel):

@@ -34,10 +34,10 @@ from typing import Any
 
 import numpy as np
 
-from renderer.camera import load_cameras
-from worker.malloc_tuning import tune_malloc
+from geometry.camera import load_cameras
+from geometry.poses import PoseTrack
+from worker.orchestration.malloc_tuning import tune_malloc
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack
 from worker.preparation.artifact import (
     ARTIFACT_VERSION,
     PreparedSequence,
@@ -190,7 +190,7 @@ def run_preparation(
     from worker.preparation.tracks import find_tracks
 
     config = config or PrepareConfig()
-    tune_malloc()  # big arrays reuse freed pages (worker/malloc_tuning.py)
+    tune_malloc()  # big arrays reuse freed pages (worker/orchestration/malloc_tuning.py)
     stage = _Stages(progress)
     t_start = time.perf_counter()
     warnings: list[str] = []

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt, minimum_filter
 
-from worker.columns import column_max, column_min, finite_rows
+from geometry.columns import column_max, column_min, finite_rows
 
 log = logging.getLogger(__name__)
 

@@ -18,9 +18,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from renderer.camera import load_cameras
-from renderer.transforms import invert_T, transform_points
-from worker.poses import PoseTrack
+from geometry.camera import load_cameras
+from geometry.poses import PoseTrack
+from geometry.transforms import invert_T, transform_points
 from worker.preparation.rails_geometric import RidgeParams
 from worker.preparation.registration import RegisteredCloud
 from worker.preparation.segmentation import SegmentationModel

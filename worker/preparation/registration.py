@@ -14,10 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from renderer.transforms import transform_points
-from worker.columns import column_min, finite_rows
+from geometry.columns import column_min, finite_rows
+from geometry.poses import PoseTrack
+from geometry.transforms import transform_points
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack
 from worker.preparation.frame_clouds import FrameClouds
 
 log = logging.getLogger(__name__)

@@ -33,8 +33,8 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from worker.columns import column_min
-from worker.poses import PoseTrack
+from geometry.columns import column_min
+from geometry.poses import PoseTrack
 from worker.preparation.centreline import Centreline
 from worker.preparation.config import PlaneConfig, PoleConfig
 

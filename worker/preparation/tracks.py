@@ -45,8 +45,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from worker.columns import finite_rows
-from worker.poses import PoseTrack
+from geometry.columns import finite_rows
+from geometry.poses import PoseTrack
 from worker.preparation.centreline import RAIL_HEAD_SPACING, Centreline
 from worker.preparation.rails_geometric import (
     RidgeParams,

@@ -21,9 +21,9 @@ import moderngl
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from renderer.camera import CameraModel, RenderSetup, gl_projection
+from geometry.camera import CameraModel, RenderSetup, gl_projection
+from geometry.transforms import invert_T
 from renderer.gl_context import create_context
-from renderer.transforms import invert_T
 from worker.synth.scene import Scene
 from worker.synth.scene_mesh import MATERIALS
 

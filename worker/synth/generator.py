@@ -25,13 +25,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from renderer.camera import CameraModel, load_cameras
-from renderer.transforms import T_to_pose, transform_points
+from geometry.camera import CameraModel, load_cameras
+from geometry.poses import PoseTrack
+from geometry.transforms import T_to_pose, transform_points
+from osdar_platform.shared_data import real_labels_path
 from worker.osdar.labels import frame_intervals
 from worker.osdar.pcd import PointCloud, header_for_fields
 from worker.osdar.writer import SequenceWriter
-from worker.poses import PoseTrack
-from worker.shared_data import real_labels_path
 from worker.synth.ins_sim import HAMBURG, InsErrorModel, simulate_ins
 
 log = logging.getLogger(__name__)
@@ -51,7 +51,7 @@ FAR_ORIGIN_OFFSET = np.array([566_000.0, 5_933_000.0, 30.0])
 
 
 def default_calibration_path() -> Path:
-    """The real OSDaR23 labels file with the real calibration (``worker.shared_data``)."""
+    """The real OSDaR23 labels file with the real calibration (``osdar_platform.shared_data``)."""
     return real_labels_path()
 
 

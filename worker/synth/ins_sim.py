@@ -9,7 +9,7 @@ frame the pipeline will use.
 Model, per frame k with stamp t_k (all errors are deterministic from ``model.seed``):
 
 1. true time ``t_k - latency_s`` (the record is stamped late by the latency, the
-   convention of :class:`worker.poses.InsToLidar`);
+   convention of :class:`geometry.poses.InsToLidar`);
 2. true INS pose ``T_world_ins = T_world_base(t) @ T_base_ins``, with the TRUE misalignment
    ``T_base_ins = make_T(R_bore @ R_base_ins_nominal, lever_arm)`` (see
    :meth:`InsErrorModel.T_base_ins`). With the nominal assumption the pipeline therefore sees
@@ -29,7 +29,7 @@ Model, per frame k with stamp t_k (all errors are deterministic from ``model.see
 8. dropouts remove whole frames from all three tables.
 
 The world frame written to ``ground_truth/world.json`` is, by the project's definition, the
-FIRST INS record's reported position (:func:`worker.geodesy.world_frame_from_ins`); use
+FIRST INS record's reported position (:func:`worker.osdar.ins_poses.world_frame_from_ins`); use
 :func:`reexpress` to express the true poses in it.
 """
 
@@ -45,16 +45,17 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from scipy.spatial.transform import Rotation
 
-from renderer.transforms import invert_T, make_T
-from worker.geodesy import WorldFrame, world_frame_from_ins
-from worker.osdar.ins_tables import CorrImu, InsPva, InsStdDev
-from worker.poses import (
+from geometry.geodesy import WorldFrame
+from geometry.poses import (
     R_INS_BASE_NOMINAL,
     InsToLidar,
     PoseTrack,
     novatel_attitude_from_R,
     reexpress,
 )
+from geometry.transforms import invert_T, make_T
+from worker.osdar.ins_poses import world_frame_from_ins
+from worker.osdar.ins_tables import CorrImu, InsPva, InsStdDev
 
 F64 = NDArray[np.float64]
 

@@ -55,7 +55,7 @@ import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from renderer.transforms import T_to_pose, invert_T, make_T
+from geometry.transforms import T_to_pose, invert_T, make_T
 from worker.synth.scene_mesh import MATERIALS, SceneMesh
 
 F64 = NDArray[np.float64]

@@ -9,6 +9,7 @@ extraction). Every strategy is in its own module: ``ins``, ``odometry``, ``rails
 
 from __future__ import annotations
 
+from osdar_platform.catalog import STRATEGY_NAMES as STRATEGIES
 from worker.preparation.localization.base import (
     Health,
     LocalizationInput,
@@ -17,8 +18,6 @@ from worker.preparation.localization.base import (
 )
 from worker.preparation.localization.common import make_input
 from worker.preparation.localization.odometry import odometry_track
-
-STRATEGIES = ("ins", "odometry", "rails", "fused", "auto")
 
 __all__ = [
     "STRATEGIES",

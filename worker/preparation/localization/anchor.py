@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from worker.poses import PoseTrack
+from geometry.poses import PoseTrack
 
 log = logging.getLogger(__name__)
 

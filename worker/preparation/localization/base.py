@@ -13,10 +13,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from worker.geodesy import WorldFrame
+from geometry.geodesy import WorldFrame
+from geometry.poses import PoseTrack
 from worker.osdar.ins_tables import InsPva
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack
 from worker.preparation.centreline import Centreline
 
 

@@ -8,7 +8,7 @@
 - small SE(3) helpers on stacks of (4, 4) transforms.
 
 The INS-to-lidar misalignment used here is the documented ASSUMPTION
-(:meth:`worker.poses.InsToLidar.nominal`: axes aligned, zero lever arm and latency);
+(:meth:`geometry.poses.InsToLidar.nominal`: axes aligned, zero lever arm and latency);
 strategies that estimate it say so.
 """
 
@@ -23,9 +23,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from worker.geodesy import world_frame_from_ins
+from geometry.poses import PoseTrack
+from worker.osdar.ins_poses import ins_to_base_poses, world_frame_from_ins
 from worker.osdar.sequence import Sequence
-from worker.poses import PoseTrack, ins_to_base_poses
 from worker.preparation.centreline import Centreline
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
 from worker.robust_stats import mad_sigma

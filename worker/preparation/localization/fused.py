@@ -5,7 +5,7 @@ on the left, and a position correction around an initial guess) and the INS-to-l
 misalignment ``M = make_T(Exp(b), l)`` (boresight ``b`` 3, lever arm ``l`` 3 in the base
 frame) with the INS latency ``L`` (1). With the nominal assumption the INS reports
 ``T_nom(t + L) = T_world_base(t) @ M`` (see :mod:`worker.synth.ins_sim` and
-:class:`worker.poses.InsToLidar`).
+:class:`geometry.poses.InsToLidar`).
 
 Residuals, each divided by its standard deviation:
 
@@ -55,7 +55,7 @@ from scipy.sparse import coo_matrix, csc_matrix, identity
 from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
 
-from worker.poses import InsToLidar, PoseTrack
+from geometry.poses import InsToLidar, PoseTrack
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
 from worker.preparation.localization.common import (
     InsFrames,

@@ -1,7 +1,7 @@
 """Strategy ``ins``: the raw INS/GNSS poses at the frames' lidar timestamps.
 
 The INS-to-lidar misalignment is the documented ASSUMPTION
-(:meth:`worker.poses.InsToLidar.nominal`: axes aligned, zero lever arm and latency).
+(:meth:`geometry.poses.InsToLidar.nominal`: axes aligned, zero lever arm and latency).
 Dropouts are interpolated, GNSS jumps and standstill reported (not corrected: this is the
 raw baseline).
 """

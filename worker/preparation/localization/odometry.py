@@ -25,7 +25,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
-from worker.poses import PoseTrack
+from geometry.poses import PoseTrack
 from worker.preparation.kiss_process import KissProcess, KissProcessError, kiss_config
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
 from worker.preparation.localization.common import (

@@ -25,7 +25,7 @@ def inspect_sequence(folder: str | Path) -> dict[str, Any]:
     cameras, lidar stream, time span, warnings."""
     from worker.osdar.errors import SequenceError
     from worker.osdar.sequence import Sequence
-    from worker.sequence_summary import summarize
+    from worker.osdar.summary import summarize
 
     folder = Path(folder)
     if not folder.is_dir():

@@ -18,7 +18,7 @@ are left, and each leaves a job row active with nothing working on it:
   mode never loses a message, but has no redelivery after a crash either: a job whose
   worker died stays RUNNING until the stale rule applies).
 - **PENDING**: the API committed the row but could not send the message
-  (``worker.jobs.queue.requeue_pending``).
+  (``worker.orchestration.queue.requeue_pending``).
 
 Re-queueing is one conditional row update (``state`` and ``updated_at`` as read), then the
 send: of several reapers (one per worker) exactly one wins a given job. The new delivery
@@ -26,7 +26,7 @@ starts a new attempt through ``state.mark_running``, which counts deliveries: a 
 has already been delivered ``max_deliveries`` times is FAILED here with the reason instead.
 
 Every worker runs :func:`reap` when it is ready and then every ``reaper_interval_s``
-(a daemon thread of the worker's main process, ``worker/jobs/celery_app.py``). The thread
+(a daemon thread of the worker's main process, ``worker/orchestration/celery_app.py``). The thread
 opens its own engine per sweep and disposes it, so no pooled connection is ever inherited
 by a prefork child forked later.
 """
@@ -45,8 +45,8 @@ from typing import Any
 
 from sqlalchemy import select, update
 
-from worker.jobs.models import Job, JobEvent, JobState, utcnow
-from worker.jobs.settings import Settings
+from osdar_platform.models import Job, JobEvent, JobState, utcnow
+from osdar_platform.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ def broker_messages_text(settings: Settings) -> str | None:
         return None
     import redis
 
-    from worker.jobs.celery_app import QUEUE
+    from worker.orchestration.celery_app import QUEUE
 
     client = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5)
     try:
@@ -123,8 +123,8 @@ def _requeue(
     why: str,
 ) -> str | None:
     """Claim the job (conditional update) and send it again; 'requeued'/'failed'/None."""
-    from worker.jobs.queue import TASK_RUN_JOB
-    from worker.jobs.state import POISON_REASON
+    from worker.orchestration.queue import TASK_RUN_JOB
+    from worker.orchestration.state import POISON_REASON
 
     now = utcnow()
     claim = [Job.id == job_id, Job.state == seen_state, Job.updated_at == seen_updated]
@@ -175,11 +175,11 @@ def _requeue(
 
 def reap(settings: Settings, app: Any = None, *, sessions: Any = None) -> ReapReport:
     """One sweep (module docstring); safe to run in many processes at once."""
-    from worker.jobs.db import make_engine, make_sessionmaker
-    from worker.jobs.queue import requeue_pending
+    from osdar_platform.db import make_engine, make_sessionmaker
+    from worker.orchestration.queue import requeue_pending
 
     if app is None:
-        from worker.jobs.celery_app import make_celery
+        from worker.orchestration.celery_app import make_celery
 
         app = make_celery(settings)
     report = ReapReport()

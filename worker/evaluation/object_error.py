@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from renderer.transforms import transform_points
+from geometry.transforms import transform_points
 from worker.augmentation.placement import resolve_placement
 from worker.augmentation.proxies import build_proxies
 
@@ -37,8 +37,8 @@ F64 = NDArray[np.float64]
 def truth_prepared(seq_folder: str | Path) -> Any:
     """A PreparedSequence made of ``ground_truth/`` (dense true poses, true centrelines,
     true world frame; no planes, poles or calibration point)."""
-    from worker.geodesy import WorldFrame
-    from worker.poses import PoseTrack
+    from geometry.geodesy import WorldFrame
+    from geometry.poses import PoseTrack
     from worker.preparation.artifact import PreparedSequence
     from worker.preparation.centreline import Centreline
 
@@ -61,7 +61,7 @@ def truth_prepared(seq_folder: str | Path) -> Any:
 
 def true_object_pose(plan: Any, truth: Any) -> F64:
     """T_world_obj (4, 4) in the TRUE world frame for the plan's placement spec."""
-    from worker.geodesy import WorldFrame
+    from geometry.geodesy import WorldFrame
 
     spec = plan.spec.placement.to_spec()
     if spec.mode == "world":  # the spec's point is in the estimated world frame

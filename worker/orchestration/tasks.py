@@ -1,4 +1,4 @@
-"""Celery tasks: thin wrappers over the plain functions of ``worker/jobs/runner.py``.
+"""Celery tasks: thin wrappers over the plain functions of ``worker/orchestration/runner.py``.
 
 Tasks get ids (job id, attempt), never objects. ``osdar_ar.run_job`` is what the API
 sends (task id = job id); it starts an attempt and launches the job's stages as one
@@ -22,10 +22,10 @@ from typing import Any
 from celery import Task, chain, chord, shared_task
 from celery.exceptions import Ignore
 
-from worker.jobs import runner, state
-from worker.jobs.queue import TASK_RUN_JOB
-from worker.jobs.settings import get_settings
-from worker.jobs.state import JobStop
+from osdar_platform.settings import get_settings
+from worker.orchestration import runner, state
+from worker.orchestration.queue import TASK_RUN_JOB
+from worker.orchestration.state import JobStop
 
 log = logging.getLogger(__name__)
 

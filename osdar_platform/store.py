@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, BinaryIO, Protocol, runtime_checkable
 from urllib.parse import unquote, urlparse
 
 if TYPE_CHECKING:
-    from worker.jobs.settings import Settings
+    from osdar_platform.settings import Settings
 
 CHUNK = 1024 * 1024
 

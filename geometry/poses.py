@@ -43,9 +43,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
-from renderer.transforms import make_T, matrix_to_quat, normalize_quat, quat_to_matrix
-from worker.geodesy import WorldFrame
-from worker.osdar.ins_tables import InsPva
+from geometry.geodesy import WorldFrame
+from geometry.transforms import make_T, matrix_to_quat, normalize_quat, quat_to_matrix
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -487,51 +486,3 @@ def reexpress(track: PoseTrack, from_world: WorldFrame, to_world: WorldFrame) ->
 # --------------------------------------------------------------------------------------------
 # INS -> poses
 # --------------------------------------------------------------------------------------------
-
-
-def ins_to_T_world_ins(ins: InsPva, world: WorldFrame) -> F64:
-    """(n, 4, 4) pose of the INS body frame in the world frame for every INSPVA row.
-
-    Position from lat/lon/height; orientation ``R_world_enu_at(lat, lon) @ R_enu_ins`` with
-    the NovAtel attitude, so meridian convergence is applied exactly.
-    """
-    p_world = world.geodetic_to_world(ins.latitude, ins.longitude, ins.height)
-    R_world_ins = world.R_world_enu_at(ins.latitude, ins.longitude) @ R_enu_ins_from_novatel(
-        ins.roll, ins.pitch, ins.azimuth
-    )
-    T = np.tile(np.eye(4), (len(p_world), 1, 1))
-    T[:, :3, :3] = R_world_ins
-    T[:, :3, 3] = p_world
-    return T
-
-
-def ins_to_base_poses(
-    ins: InsPva, world: WorldFrame, ins_to_lidar: InsToLidar | None = None
-) -> PoseTrack:
-    """Base (merged lidar) poses ``T_world_base = T_world_ins @ T_ins_base`` per INS record.
-
-    Records with non-finite values are dropped (with a warning). Each pose is stamped at the
-    true time ``timestamp - latency_s``. ``ins_to_lidar`` defaults to the nominal ASSUMPTION
-    (:meth:`InsToLidar.nominal`).
-    """
-    cal = InsToLidar.nominal() if ins_to_lidar is None else ins_to_lidar
-    cols = [
-        ins.timestamp,
-        ins.latitude,
-        ins.longitude,
-        ins.height,
-        ins.roll,
-        ins.pitch,
-        ins.azimuth,
-    ]
-    ok = np.logical_and.reduce([np.isfinite(np.asarray(c, dtype=np.float64)) for c in cols])
-    if not np.all(ok):
-        logger.warning(
-            "INS: dropping %d of %d records with non-finite values", int(np.sum(~ok)), len(ok)
-        )
-        ins = ins.take(ok)  # type: ignore[assignment]
-    if len(ins) == 0:
-        raise ValueError("no usable INS records")
-    T_world_base = ins_to_T_world_ins(ins, world) @ cal.T_ins_base
-    ts = np.asarray(ins.timestamp, dtype=np.float64) - cal.latency_s
-    return PoseTrack(ts, T_world_base, np.asarray(ins.frame_idx, dtype=np.int64))

@@ -31,9 +31,9 @@ from typing import Any
 
 from pydantic import SecretStr
 
-from worker.jobs.celery_app import QUEUE, make_celery
-from worker.jobs.settings import Settings
-from worker.jobs.threads import thread_caps
+from osdar_platform.settings import Settings
+from worker.orchestration.celery_app import QUEUE, make_celery
+from worker.orchestration.threads import thread_caps
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +87,7 @@ def worker_command(
         "-m",
         "celery",
         "-A",
-        "worker.jobs.celery_app",
+        "worker.orchestration.celery_app",
         "worker",
         "--pool",
         pool,
@@ -185,7 +185,7 @@ class Embedded:
         from service.app import create_app
 
         if self.migrate:
-            from worker.jobs.migrate import upgrade
+            from osdar_platform.migrate import upgrade
 
             upgrade(database_url=str(self.settings.database_url))
         self.worker = start_worker(

@@ -28,7 +28,7 @@ from pathlib import Path, PurePosixPath
 from typing import TYPE_CHECKING, BinaryIO
 
 if TYPE_CHECKING:
-    from worker.jobs.settings import Settings
+    from osdar_platform.settings import Settings
 
 CHUNK = 1024 * 1024
 MAX_COMPONENT = 255

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from renderer.transforms import invert_T, openlabel_pose_to_T, transform_points
+from geometry.transforms import invert_T, openlabel_pose_to_T, transform_points
 
 log = logging.getLogger(__name__)
 

@@ -30,8 +30,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pyproj import Transformer
 
-from worker.osdar.ins_tables import InsPva
-
 F64 = NDArray[np.float64]
 
 logger = logging.getLogger(__name__)
@@ -225,24 +223,3 @@ class WorldFrame:
             raise ValueError(
                 f"world frame JSON needs latitude, longitude, height; missing {exc}"
             ) from exc
-
-
-def world_frame_from_ins(ins: InsPva) -> WorldFrame:
-    """The sequence's world frame: origin at the first (earliest) INS record's position.
-
-    The reported position is used as is (with its errors): this is the project's definition
-    of the world frame, and the synthetic sequences' ``ground_truth/world.json`` follows it.
-    """
-    if len(ins) == 0:
-        raise ValueError("cannot define a world frame from an empty INS table")
-    ts = np.asarray(ins.timestamp, dtype=np.float64)
-    lat = np.asarray(ins.latitude, dtype=np.float64)
-    lon = np.asarray(ins.longitude, dtype=np.float64)
-    h = np.asarray(ins.height, dtype=np.float64)
-    ok = np.isfinite(ts) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(h)
-    if not np.any(ok):
-        raise ValueError("no INS record has a finite timestamp and position")
-    i = int(np.flatnonzero(ok)[np.argmin(ts[ok])])
-    frame = WorldFrame(float(lat[i]), float(lon[i]), float(h[i]))
-    logger.debug("world frame from INS record %d: %s", i, frame)
-    return frame

@@ -114,11 +114,11 @@ def _ground_truth(
     seq_folder: Path, prepared: PreparedSequence, cameras: list[str]
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """True pose errors and landmark RPE / jitter per camera and track (synthetic data)."""
-    from renderer.camera import CameraModel
-    from worker.geodesy import WorldFrame
-    from worker.landmark_error import landmark_errors
+    from geometry.camera import CameraModel
+    from geometry.geodesy import WorldFrame
+    from geometry.poses import PoseTrack, reexpress
+    from worker.evaluation.landmark_error import landmark_errors
     from worker.osdar.sequence import Sequence
-    from worker.poses import PoseTrack, reexpress
 
     gt_dir = seq_folder / "ground_truth"
     meta = json.loads((gt_dir / "meta.json").read_text())
@@ -270,7 +270,7 @@ def full_resolution_cameras(seq: Any, cameras: list[str]) -> dict[str, Any]:
     """The sequence's cameras at their full (sensor) resolution: synthetic sequences carry
     them in ``ground_truth/meta.json``; otherwise the labels' intrinsics rescaled to the
     OSDaR23 full size (the identity on real data)."""
-    from renderer.camera import CameraModel, load_cameras
+    from geometry.camera import CameraModel, load_cameras
     from worker.preparation.calibration_point import camera_at_resolution, click_resolution
 
     meta_file = Path(seq.folder) / "ground_truth" / "meta.json"
@@ -294,7 +294,7 @@ def cloud_for_track(prepared: PreparedSequence, track: Any) -> np.ndarray:
     to ``track``'s pose of that frame: p' = T_track(f) T_chosen(f)^-1 p. Frames ``track``
     lacks keep their points where they are.
     """
-    from worker.poses import PoseTrack
+    from geometry.poses import PoseTrack
 
     cloud = prepared.cloud
     if track is prepared.track:
@@ -329,8 +329,8 @@ def synthetic_clicks(
     """Clicks from the ground truth of a synthetic sequence: one :class:`Clicks` per
     landmark, its true full-resolution pixel in every frame where it is ``near``-``far``
     m in front of the camera (true pose at the camera's timestamp), plus N(0, noise^2)."""
+    from geometry.poses import PoseTrack
     from worker.osdar.sequence import Sequence
-    from worker.poses import PoseTrack
     from worker.preparation.calibration_point import Clicks
 
     folder = Path(seq_folder)
@@ -460,9 +460,9 @@ def _true_errors(
     seq: Any, track: Any, world: Any, cams: dict[str, Any], clicks: list[Any]
 ) -> dict[str, Any]:
     """True pose errors and the pixel error of the true landmarks (synthetic data)."""
-    from worker.geodesy import WorldFrame
-    from worker.landmark_error import landmark_errors
-    from worker.poses import PoseTrack, reexpress
+    from geometry.geodesy import WorldFrame
+    from geometry.poses import PoseTrack, reexpress
+    from worker.evaluation.landmark_error import landmark_errors
 
     gt_dir = Path(seq.folder) / "ground_truth"
     truth = PoseTrack.from_csv(gt_dir / "poses.csv")

@@ -15,7 +15,7 @@ import secrets
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from worker.jobs.models import ApiKey
+from osdar_platform.models import ApiKey
 
 SECRET_PREFIX = "oar_"
 PREFIX_CHARS = 12

@@ -37,7 +37,7 @@ class Settings(BaseSettings):
         env_prefix="OSDAR_AR_", extra="ignore", populate_by_name=True, validate_default=True
     )
 
-    #: "test" enables test-only job-spec hooks (worker/jobs/runner.py); never deploy it.
+    #: "test" enables test-only job-spec hooks (worker/orchestration/runner.py); never deploy it.
     environment: Literal["dev", "test", "prod"] = "dev"
     data_dir: Path = Path("./var")
 
@@ -97,7 +97,7 @@ class Settings(BaseSettings):
     store_retries: int = Field(6, ge=0)
     store_retry_base_s: float = Field(0.5, gt=0)
     store_retry_max_s: float = Field(30.0, gt=0)
-    #: The reaper (worker/jobs/reaper.py), run by every worker at start and then every
+    #: The reaper (worker/orchestration/reaper.py), run by every worker at start and then every
     #: ``reaper_interval_s`` (0: never). A RUNNING job without a heartbeat (row update) for
     #: ``reaper_stale_after_s`` (None: task_time_limit_s + visibility_margin_s) is re-queued
     #: or FAILED; a QUEUED/RUNNING job older than ``reaper_orphan_grace_s`` that no broker

@@ -1,7 +1,7 @@
 """Database tables of the job service (SQLAlchemy 2, typed declarative).
 
 The API writes API keys, sequences, assets and new jobs; the workers write job state,
-events and results (``worker/jobs/state.py``). The schema is created by the Alembic
+events and results (``worker/orchestration/state.py``). The schema is created by the Alembic
 migrations in ``migrations/``, never by ``create_all``.
 """
 

@@ -1,4 +1,4 @@
-"""The Celery app of the workers, built from :class:`~worker.jobs.settings.Settings`.
+"""The Celery app of the workers, built from :class:`~osdar_platform.settings.Settings`.
 
 Delivery is *at least once* (../shared/design/RELIABILITY.md); the settings below make
 it so, and the job code (``runner.py``, ``state.py``) makes the effects exactly once:
@@ -33,7 +33,7 @@ from celery import Celery
 from celery.signals import worker_ready, worker_shutdown
 from sqlalchemy.engine import make_url
 
-from worker.jobs.settings import Settings, get_settings
+from osdar_platform.settings import Settings, get_settings
 
 #: The one queue of the service.
 QUEUE = "osdar_ar"
@@ -106,7 +106,7 @@ def make_celery(settings: Settings | None = None, *, main: str = "osdar_ar") -> 
     """A Celery app for ``settings`` (default: the environment's) with our tasks."""
     settings = settings or get_settings()
     # The tasks are shared tasks: every app built here (tests, embedded mode) has them.
-    app = Celery(main, include=["worker.jobs.tasks"], set_as_current=False)
+    app = Celery(main, include=["worker.orchestration.tasks"], set_as_current=False)
     app.conf.update(celery_config(settings))
     return app
 
@@ -114,7 +114,7 @@ def make_celery(settings: Settings | None = None, *, main: str = "osdar_ar") -> 
 @worker_ready.connect
 def _start_reaper(sender: Any = None, **_: Any) -> None:
     """Every worker sweeps for lost jobs at start and then periodically (reaper.py)."""
-    from worker.jobs.reaper import start_reaper
+    from worker.orchestration.reaper import start_reaper
 
     app = getattr(sender, "app", None) or celery_app
     start_reaper(get_settings(), app)
@@ -122,12 +122,12 @@ def _start_reaper(sender: Any = None, **_: Any) -> None:
 
 @worker_shutdown.connect
 def _stop_reaper(**_: Any) -> None:
-    from worker.jobs.reaper import stop_reaper
+    from worker.orchestration.reaper import stop_reaper
 
     stop_reaper()
 
 
-#: The process's app (``celery -A worker.jobs.celery_app worker``; the API's sender).
+#: The process's app (``celery -A worker.orchestration.celery_app worker``; the API's sender).
 celery_app = make_celery()
 app = celery_app
 

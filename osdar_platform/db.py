@@ -18,7 +18,7 @@ from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
-from worker.jobs.settings import Settings, get_settings
+from osdar_platform.settings import Settings, get_settings
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000
 

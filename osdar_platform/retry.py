@@ -2,9 +2,9 @@
 
 A store that fails for a while (S3 endpoint restarting, network blip) must not fail the
 job: every store call a job makes goes through :class:`RetryingStore`, which retries a
-:class:`~worker.jobs.store.StoreError` (the store's "unreachable or refused") up to
+:class:`~osdar_platform.store.StoreError` (the store's "unreachable or refused") up to
 ``retries`` times, sleeping ``base * 2**i`` seconds (capped at ``cap``, with +-25 %
-jitter so that many workers do not retry in step). :class:`~worker.jobs.store.ObjectNotFound`
+jitter so that many workers do not retry in step). :class:`~osdar_platform.store.ObjectNotFound`
 and bad keys are answers, not failures: never retried. Writes are atomic in both stores,
 so a retried upload never leaves a partial object visible.
 """
@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
-from worker.jobs.store import ObjectStore, StoreError
+from osdar_platform.store import ObjectStore, StoreError
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from renderer.camera import CameraModel
-from worker.poses import PoseTrack
+from geometry.camera import CameraModel
+from geometry.poses import PoseTrack
 
 F64 = NDArray[np.float64]
 

@@ -1,6 +1,6 @@
 """Handing jobs to the workers, and asking them to stop.
 
-The contract with the Celery side (``worker/jobs/celery_app.py``, ``tasks.py``): the API
+The contract with the Celery side (``worker/orchestration/celery_app.py``, ``tasks.py``): the API
 commits the new job row (PENDING), then calls :func:`enqueue_job`, which sends task
 ``TASK_RUN_JOB`` with the job id (the task id is the job id, so it can be revoked) and
 moves the row PENDING -> QUEUED. The state change is conditional: a worker that already
@@ -16,23 +16,23 @@ from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select, update
 
-from worker.jobs.models import Job, JobEvent, JobState, utcnow
+from osdar_platform.models import Job, JobEvent, JobState, utcnow
 
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
 
-    from worker.jobs.settings import Settings
+    from osdar_platform.settings import Settings
 
 log = logging.getLogger(__name__)
 
-#: The Celery task that runs a job (a plain function in worker/jobs/runner.py).
+#: The Celery task that runs a job (a plain function in worker/orchestration/runner.py).
 TASK_RUN_JOB = "osdar_ar.run_job"
 
 
 def _celery_app(app: Any) -> Any:
     if app is not None:
         return app
-    from worker.jobs.celery_app import celery_app  # lazily: Celery is the workers' side
+    from worker.orchestration.celery_app import celery_app  # lazily: Celery is the workers' side
 
     return celery_app
 
@@ -40,7 +40,7 @@ def _celery_app(app: Any) -> Any:
 def _sessions(settings: Settings | None, sessions: sessionmaker[Session] | None) -> Any:
     if sessions is not None:
         return sessions
-    from worker.jobs.db import get_sessionmaker
+    from osdar_platform.db import get_sessionmaker
 
     return get_sessionmaker(settings)
 

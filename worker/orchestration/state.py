@@ -22,9 +22,9 @@ from typing import Any
 
 from sqlalchemy import case, func, select, update
 
-from worker.jobs.db import session_scope
-from worker.jobs.models import TERMINAL_STATES, Job, JobEvent, JobState, utcnow
-from worker.jobs.settings import Settings
+from osdar_platform.db import session_scope
+from osdar_platform.models import TERMINAL_STATES, Job, JobEvent, JobState, utcnow
+from osdar_platform.settings import Settings
 
 log = logging.getLogger(__name__)
 

@@ -1,18 +1,18 @@
 """Names a job spec may use, kept importable without the pipeline (no numpy).
 
-The renderer's object library and the localization package own the real lists; these
-are repeated here so that the API validates a spec without importing geometry, and a
-test checks that they agree where the other side exists.
+The strategy names are defined here, once: the preparation config and the localization
+package import them. The renderer's object library owns the real object list; it is
+repeated here so that the API validates a spec without importing geometry, and a test
+checks that the two agree.
 """
 
 from __future__ import annotations
 
-from worker.preparation.config import STRATEGY_NAMES
-
 #: Built-in obstacle meshes (renderer's object library).
 BUILTIN_OBJECTS = ("person", "rock", "fallen_tree", "cow", "horse", "elephant")
 
-#: Localization strategies a job may ask for.
+#: Localization strategies a job may ask for (``auto`` picks one of the others).
+STRATEGY_NAMES = ("ins", "odometry", "rails", "fused", "auto")
 STRATEGIES = STRATEGY_NAMES
 
 #: Mesh file types accepted for uploaded assets (loaded with an explicit type).

@@ -17,7 +17,7 @@ then the output sequence is the input sequence, packaged with its evaluation.
 Every stage runs inside :func:`_stage`: it checks that the attempt is still current and
 not cancelled, counts the stage's deliveries (a stage that keeps killing its worker fails
 the job), shows the stage on the job, times it, and turns errors into a FAILED job with a
-readable reason (:class:`~worker.jobs.state.JobFailed`) and cancellations into CANCELLED
+readable reason (:class:`~worker.orchestration.state.JobFailed`) and cancellations into CANCELLED
 (partial outputs removed). Stages hold no DB session while they compute.
 
 Each stage can run on another machine than the previous one: it only needs the job id
@@ -44,18 +44,18 @@ from typing import Any
 
 from sqlalchemy import select
 
-from worker.jobs import state
-from worker.jobs.db import session_scope
-from worker.jobs.models import Job, JobState, Sequence
-from worker.jobs.settings import Settings, get_settings
-from worker.jobs.state import (
+from osdar_platform.db import session_scope
+from osdar_platform.models import Job, JobState, Sequence
+from osdar_platform.settings import Settings, get_settings
+from osdar_platform.store import ObjectStore, store_from_url
+from worker.orchestration import state
+from worker.orchestration.state import (
     POISON_REASON,
     JobCancelled,
     JobFailed,
     JobStop,
     JobSuperseded,
 )
-from worker.jobs.store import ObjectStore, store_from_url
 
 log = logging.getLogger(__name__)
 
@@ -78,9 +78,9 @@ class JobRun:
 
     @property
     def store(self) -> ObjectStore:
-        """The object store, every call retried with backoff (worker/jobs/retry.py)."""
+        """The object store, every call retried with backoff (osdar_platform/retry.py)."""
         if self._store is None:
-            from worker.jobs.retry import RetryingStore
+            from osdar_platform.retry import RetryingStore
 
             s = self.settings
             self._store = RetryingStore(
@@ -155,8 +155,8 @@ class StageError(Exception):
 
 def describe_error(stage: str, exc: BaseException) -> str:
     """A readable failure reason: the user's problem said plainly, ours named as such."""
-    from worker.jobs.archive_safety import UnsafeArchive
-    from worker.jobs.store import StoreError
+    from osdar_platform.archive_safety import UnsafeArchive
+    from osdar_platform.store import StoreError
     from worker.osdar.errors import SequenceError
 
     name = type(exc).__name__
@@ -324,7 +324,7 @@ def _local_sequence(run: JobRun) -> Path:
         return folder
     if not seq["content_key"]:
         raise StageError(f"sequence folder {folder} is not readable on this worker")
-    from worker.jobs.archive_safety import ArchiveLimits, extract_archive
+    from osdar_platform.archive_safety import ArchiveLimits, extract_archive
 
     base = Path(run.settings.cache_dir) / "sequences" / seq["id"]
     marker = base / "root.txt"
@@ -417,7 +417,7 @@ def augmentation_module() -> Any | None:
 
 def _augment_spec(run: JobRun, mod: Any) -> Any:
     """The augmentation's spec from the job spec (an uploaded mesh read from the store)."""
-    from worker.jobs.models import Asset
+    from osdar_platform.models import Asset
 
     spec = run.spec
     asset_id = (spec.get("object") or {}).get("asset_id")
@@ -521,7 +521,7 @@ def _output_folder(run: JobRun) -> Path:
 
 def _chunk_results(run: JobRun, chunks: list[dict[str, Any]]) -> list[Any]:
     """Every chunk's records, with its files on this machine (downloaded if need be)."""
-    from worker.jobs.archive_safety import ArchiveLimits, extract_archive
+    from osdar_platform.archive_safety import ArchiveLimits, extract_archive
 
     out = []
     for c in sorted(chunks, key=lambda c: c["index"]):
@@ -596,7 +596,7 @@ def evaluate_job(
     job_id: str, *, attempt: int | None = None, settings: Settings | None = None
 ) -> dict[str, Any]:
     """RPE / jitter of the job's poses (and true errors on synthetic data) -> metrics."""
-    from worker.evaluate import evaluate_sequence
+    from worker.evaluation.evaluate import evaluate_sequence
 
     run = _run(job_id, attempt, settings)
     with _stage(run, "evaluate"):
@@ -624,8 +624,8 @@ def _archive_path(run: JobRun) -> Path:
 
 def _report(run: JobRun, metrics: dict[str, Any]) -> dict[str, Path]:
     """metrics.json, the RPE/jitter plot, previews, preparation summary -> {arcname: file}."""
-    from worker.evaluate import plot_rpe_jitter
-    from worker.package import make_previews
+    from worker.evaluation.evaluate import plot_rpe_jitter
+    from worker.packaging import make_previews
 
     report = run.workdir / "report"
     shutil.rmtree(report, ignore_errors=True)
@@ -659,7 +659,7 @@ def package_job(
 
 
 def _package(run: JobRun) -> Path:
-    from worker.package import build_archive
+    from worker.packaging import build_archive
 
     metrics = state.get_metrics(run.job_id, settings=run.settings)
     extra = _report(run, metrics)
