@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.ndimage import map_coordinates
 
 from geometry.transforms import invert_T, openlabel_pose_to_T, transform_points
 
@@ -491,7 +492,6 @@ def _pinhole_map(
     interpolated bilinearly (error < 1e-3 px for the real OSDaR23 lenses); pixels next to
     an invalid node (the distortion fold) are solved exactly.
     """
-    from scipy.ndimage import map_coordinates
 
     H, W = cam.height, cam.width
     gu = np.arange(0, W - 1 + step, step, dtype=np.float64)

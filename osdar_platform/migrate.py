@@ -6,6 +6,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from alembic import command
+from alembic.config import Config
+from alembic.script import ScriptDirectory
+
 MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
 
 
@@ -25,7 +29,6 @@ class _CurrentStdout:
 
 def alembic_config(*, database_url: str | None = None, connection: Any = None) -> Any:
     """An Alembic Config on ``migrations/`` with the URL (or an open connection)."""
-    from alembic.config import Config
 
     if not (MIGRATIONS_DIR / "env.py").is_file():
         raise FileNotFoundError(f"migrations not found at {MIGRATIONS_DIR}")
@@ -46,19 +49,16 @@ def upgrade(
     *, database_url: str | None = None, connection: Any = None, revision: str = "head"
 ) -> None:
     """``alembic upgrade <revision>`` on ``database_url`` (default: the settings')."""
-    from alembic import command
 
     command.upgrade(alembic_config(database_url=database_url, connection=connection), revision)
 
 
 def current_head() -> str:
-    from alembic.script import ScriptDirectory
 
     return str(ScriptDirectory.from_config(alembic_config()).get_current_head())
 
 
 def downgrade(*, database_url: str | None = None, revision: str = "base") -> None:
     """``alembic downgrade <revision>`` (tests; rolling back a release)."""
-    from alembic import command
 
     command.downgrade(alembic_config(database_url=database_url), revision)

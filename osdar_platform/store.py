@@ -16,6 +16,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO, Protocol, runtime_checkable
 from urllib.parse import unquote, urlparse
 
+import boto3
+from botocore.config import Config
+from botocore.exceptions import BotoCoreError, ClientError
+
 if TYPE_CHECKING:
     from osdar_platform.settings import Settings
 
@@ -168,8 +172,6 @@ class S3Store:
         secret_access_key: str | None = None,
         client: Any = None,
     ) -> None:
-        import boto3
-        from botocore.config import Config
 
         self.bucket = bucket
         self.prefix = prefix.strip("/")
@@ -195,7 +197,6 @@ class S3Store:
         return f"{self.prefix}/{key}" if self.prefix else key
 
     def _call(self, fn: Any, key: str, **kwargs: Any) -> Any:
-        from botocore.exceptions import BotoCoreError, ClientError
 
         try:
             return fn(**kwargs)
@@ -209,7 +210,6 @@ class S3Store:
 
     def create_bucket(self) -> None:
         """Create the bucket if it does not exist (tests, first start of a MinIO)."""
-        from botocore.exceptions import ClientError
 
         try:
             self.client.head_bucket(Bucket=self.bucket)

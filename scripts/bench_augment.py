@@ -38,11 +38,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from geometry.transforms import invert_T
 from renderer.lidar_cast import hidden_from, origins_from_json, point_origins
-from worker.augmentation.augment import (
-    augment,
-    cast_frame_lidar,
-    plan_augmentation,
-)
+from worker.augmentation.augment import augment
+from worker.augmentation.frame import cast_frame_lidar
+from worker.augmentation.plan import plan_augmentation
 from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel, RenderSpec
 from worker.bench.floor import measure_floor
 from worker.osdar.pcd import read_pcd

@@ -24,6 +24,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+from kiss_icp.config import KISSConfig
+from kiss_icp.kiss_icp import KissICP
 from scipy.spatial.transform import Rotation
 
 from geometry.poses import PoseTrack
@@ -31,12 +33,11 @@ from worker.osdar.sequence import Sequence
 from worker.preparation.centreline import Centreline
 from worker.preparation.localization import STRATEGIES, make_input, run_strategy
 from worker.preparation.localization.common import relative_motions
+from worker.synth.generator import SynthConfig, generate
 
 
 def kiss_alone(folder: Path) -> float:
     """Seconds for reading the clouds and running KISS-ICP (default voxel, deskew off)."""
-    from kiss_icp.config import KISSConfig
-    from kiss_icp.kiss_icp import KissICP
 
     seq = Sequence.open(folder)
     started = time.perf_counter()
@@ -110,8 +111,6 @@ def main() -> None:
     logging.basicConfig(level=logging.ERROR)
     folders = list(args.folders)
     if args.generate:
-        from worker.synth.generator import SynthConfig, generate
-
         for scene in args.generate:
             out = args.out / scene
             if not out.exists():

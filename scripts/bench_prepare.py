@@ -26,6 +26,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from kiss_icp.kiss_icp import KissICP
+
 from worker.orchestration.malloc_tuning import tune_malloc
 from worker.osdar.sequence import Sequence
 from worker.preparation.artifact import write_artifact
@@ -54,7 +56,6 @@ def kiss_alone(seq: Sequence, config: PrepareConfig) -> float:
     """Wall time of KISS-ICP alone over the sequence's clouds: read each cloud, drop its
     ground (KISS-ICP needs that on these clouds, see odometry.remove_ground), register it.
     None of the preparation's diagnostics (information, ground heights) is counted here."""
-    from kiss_icp.kiss_icp import KissICP
 
     inp = make_input(seq, options=dict(config.localization.options))
     t0 = time.perf_counter()

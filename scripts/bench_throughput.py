@@ -21,6 +21,18 @@ import time
 from pathlib import Path
 from typing import Any
 
+import psutil
+import redis
+from fastapi.testclient import TestClient
+
+from osdar_platform.db import session_scope
+from osdar_platform.keys import create_api_key
+from osdar_platform.migrate import upgrade
+from service.app import create_app
+from worker.orchestration.celery_app import make_celery
+from worker.orchestration.embedded import embedded_settings, start_worker, stop_worker
+from worker.synth.generator import SynthConfig, generate
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 REDIS_URL = "redis://127.0.0.1:6379/11"
@@ -57,7 +69,6 @@ def _wait_all(client: Any, headers: dict[str, str], ids: list[str], timeout_s: f
 
 def _tree_cpu_s(proc: Any) -> float:
     """User + system CPU seconds of a process and its live children (psutil)."""
-    import psutil
 
     total = 0.0
     try:
@@ -78,15 +89,6 @@ def run_batch(seq_folder: Path, workers: int, jobs: int, root: Path) -> tuple[fl
 
     Busy cores = CPU seconds of the worker's process tree during the batch / its wall time
     (prefork children live for the whole run, so their counters cover the batch)."""
-    import redis
-    from fastapi.testclient import TestClient
-
-    from osdar_platform.db import session_scope
-    from osdar_platform.keys import create_api_key
-    from osdar_platform.migrate import upgrade
-    from service.app import create_app
-    from worker.orchestration.celery_app import make_celery
-    from worker.orchestration.embedded import embedded_settings, start_worker, stop_worker
 
     redis.Redis.from_url(REDIS_URL).flushdb()
     data = root / f"w{workers}"
@@ -154,7 +156,6 @@ def main() -> int:
         THREAD_ENV.update(
             OMP_NUM_THREADS=n, OPENBLAS_NUM_THREADS=n, MKL_NUM_THREADS=n, LP_NUM_THREADS=n
         )
-    from worker.synth.generator import SynthConfig, generate
 
     root = Path(tempfile.mkdtemp(prefix="osdar_throughput_"))
     try:

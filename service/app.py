@@ -14,9 +14,10 @@ from typing import Any
 from fastapi import APIRouter, FastAPI
 
 from osdar_platform.db import make_engine, make_sessionmaker
+from osdar_platform.migrate import upgrade
 from osdar_platform.settings import Settings, get_settings
 from osdar_platform.store import store_from_url
-from service.dashboard import install_dashboard
+from service.dashboard.mount import install_dashboard
 from service.deps import Dispatcher
 from service.errors import install_handlers
 from service.ratelimit import TokenBuckets
@@ -50,8 +51,6 @@ def create_app(
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if migrate:
-            from osdar_platform.migrate import upgrade
-
             upgrade(database_url=str(settings.database_url))
         yield
         app.state.engine.dispose()

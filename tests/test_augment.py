@@ -19,8 +19,10 @@ import pytest
 from geometry.camera import CameraModel
 from geometry.poses import PoseTrack
 from geometry.transforms import invert_T, transform_points
-from worker.augmentation.augment import augment_frames, finish_augmentation, plan_augmentation
+from worker.augmentation.finish import finish_augmentation
+from worker.augmentation.frame import augment_frames
 from worker.augmentation.placement import PlacementError
+from worker.augmentation.plan import plan_augmentation
 from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel
 from worker.cli import main
 from worker.evaluation.object_error import truth_prepared

@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from geometry.camera import load_cameras
+from geometry.voxels import unique_first, voxel_keep
 from tests.synth_fixtures import landmarks, synth_sequence, true_poses
 from worker.osdar.sequence import Sequence
 from worker.preparation.calibration_point import (
@@ -22,12 +23,7 @@ from worker.preparation.calibration_point import (
     propose_pole_tops,
 )
 from worker.preparation.config import CalibrationConfig
-from worker.preparation.registration import (
-    points_near,
-    register_clouds,
-    unique_first,
-    voxel_keep,
-)
+from worker.preparation.registration import points_near, register_clouds
 from worker.preparation.scene_elements import Pole
 
 VOXEL = 0.1

@@ -648,8 +648,9 @@ def _augment_spec(args: argparse.Namespace) -> Any:
 
 
 def cmd_augment(args: argparse.Namespace) -> int:
-    from worker.augmentation.augment import AugmentError, augment
+    from worker.augmentation.augment import augment
     from worker.augmentation.placement import PlacementError
+    from worker.augmentation.plan import AugmentError
     from worker.preparation.calibration_point import ClicksError
     from worker.preparation.config import STRATEGY_NAMES
     from worker.preparation.prepare import PreparationError

@@ -17,11 +17,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 
 from geometry.camera import CameraModel
 from geometry.poses import PoseTrack
+from osdar_platform.db import session_scope
+from osdar_platform.keys import create_api_key
 from worker.evaluation.landmark_error import landmark_errors
+from worker.orchestration.embedded import Embedded, embedded_settings
 from worker.osdar.ins_poses import ins_to_base_poses, world_frame_from_ins
 from worker.osdar.sequence import Sequence
 from worker.synth.generator import SynthConfig, generate
@@ -114,11 +118,6 @@ def run_service_demo(
     at every poll; ``keep_running(url)`` is called before the service stops (the CLI's
     ``--serve`` blocks there).
     """
-    import httpx
-
-    from osdar_platform.db import session_scope
-    from osdar_platform.keys import create_api_key
-    from worker.orchestration.embedded import Embedded, embedded_settings
 
     workdir = Path(workdir).resolve()
     data = workdir / "var"

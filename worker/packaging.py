@@ -18,7 +18,11 @@ import tarfile
 from collections.abc import Callable
 from pathlib import Path
 
+import cv2
 import numpy as np
+
+from worker.osdar.images import write_png
+from worker.osdar.sequence import Sequence
 
 #: Folders of the input never copied into the output.
 EXCLUDED = frozenset({"ground_truth"})
@@ -36,7 +40,6 @@ def preview_frames(frames: list[int]) -> list[int]:
 
 
 def _thumbnail(img: np.ndarray, width: int = PREVIEW_WIDTH_PX) -> np.ndarray:
-    import cv2
 
     h, w = img.shape[:2]
     if w <= width:
@@ -46,7 +49,6 @@ def _thumbnail(img: np.ndarray, width: int = PREVIEW_WIDTH_PX) -> np.ndarray:
 
 def bird_eye_view(xyz: np.ndarray) -> np.ndarray:
     """(H, W, 3) RGB uint8 point density of an (n, 3) lidar-frame cloud seen from above."""
-    import cv2
 
     x0, x1, y0, y1 = BEV_EXTENT_M
     nx, ny = round((x1 - x0) / BEV_CELL_M), round((y1 - y0) / BEV_CELL_M)
@@ -68,8 +70,6 @@ def make_previews(
 
     Returns the files written, in a stable order.
     """
-    from worker.osdar.images import write_png
-    from worker.osdar.sequence import Sequence
 
     seq = Sequence.open(seq_folder)
     out_dir = Path(out_dir)

@@ -15,6 +15,11 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from celery import Celery
+from sqlalchemy import update
+
+from osdar_platform.db import session_scope
+from osdar_platform.models import Job, JobState
 from scripts.reliability import common as c
 
 NAME = "authz_matrix"
@@ -31,10 +36,6 @@ def _tar_of(folder: Path) -> bytes:
 
 
 def _fake_publish(settings: Any, store: Any, job_id: str) -> None:
-    from sqlalchemy import update
-
-    from osdar_platform.db import session_scope
-    from osdar_platform.models import Job, JobState
 
     key = f"jobs/{job_id}/attempt-1/archive.tar.gz"
     store.put_bytes(key, b"alice's archive")
@@ -57,7 +58,6 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
     random_ids = 3 if quick else 20
     with c.pg_database() as db:
         settings = c.reliability_settings(workdir / "var", database_url=db, broker_url="memory://")
-        from celery import Celery
 
         celery = Celery("authz", broker="memory://", set_as_current=False)
         alice_key, bob_key = c.new_api_key(settings, "alice"), c.new_api_key(settings, "bob")

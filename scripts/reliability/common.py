@@ -16,9 +16,11 @@ import contextlib
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import uuid
@@ -26,6 +28,22 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import httpx
+import psutil
+import redis
+import uvicorn
+from sqlalchemy import create_engine, select, text
+from sqlalchemy.engine import make_url
+
+from osdar_platform.db import session_scope
+from osdar_platform.keys import create_api_key
+from osdar_platform.migrate import upgrade
+from osdar_platform.models import Job, JobEvent
+from service.app import create_app
+from worker.orchestration.celery_app import make_celery
+from worker.orchestration.embedded import embedded_settings, free_port, start_worker, stop_worker
+from worker.synth.generator import SynthConfig, generate
 
 REDIS_URL = os.environ.get("OSDAR_AR_RELIABILITY_REDIS_URL", "redis://127.0.0.1:6379/12")
 PG_CANDIDATES = (
@@ -64,8 +82,6 @@ def log(msg: str) -> None:
 
 # ---------------------------------------------------------------------------- servers
 def pg_admin_url() -> Any:
-    from sqlalchemy import create_engine, text
-    from sqlalchemy.engine import make_url
 
     errors = []
     for raw in filter(None, PG_CANDIDATES):
@@ -85,9 +101,6 @@ def pg_admin_url() -> Any:
 @contextlib.contextmanager
 def pg_database(prefix: str = "osdar_rel") -> Iterator[str]:
     """A fresh, migrated schema in the test database (its URL); dropped at the end."""
-    from sqlalchemy import create_engine, text
-
-    from osdar_platform.migrate import upgrade
 
     admin = pg_admin_url()
     schema = f"{prefix}_{uuid.uuid4().hex[:10]}"
@@ -109,7 +122,6 @@ def pg_database(prefix: str = "osdar_rel") -> Iterator[str]:
 
 
 def redis_client(url: str = REDIS_URL) -> Any:
-    import redis
 
     return redis.Redis.from_url(url, socket_connect_timeout=2, socket_timeout=5)
 
@@ -159,7 +171,6 @@ def wait_for(predicate: Callable[[], Any], timeout_s: float, what: str, every: f
 
 def synth_sequence(folder: Path, frames: int = 4) -> Path:
     """A small synthetic OSDaR23 sequence (made once per folder)."""
-    from worker.synth.generator import SynthConfig, generate
 
     if not (folder / "ground_truth" / "meta.json").is_file():
         generate(
@@ -170,7 +181,6 @@ def synth_sequence(folder: Path, frames: int = 4) -> Path:
 
 def reliability_settings(data_dir: Path, **overrides: Any) -> Any:
     """Settings of the scenarios: environment "test", short limits, no API throttling."""
-    from worker.orchestration.embedded import embedded_settings
 
     values: dict[str, Any] = {
         "environment": "test",
@@ -194,8 +204,6 @@ def reliability_settings(data_dir: Path, **overrides: Any) -> Any:
 
 
 def new_api_key(settings: Any, name: str = "rel") -> str:
-    from osdar_platform.db import session_scope
-    from osdar_platform.keys import create_api_key
 
     with session_scope(settings) as s:
         _, secret = create_api_key(
@@ -218,20 +226,12 @@ def job_spec(sequence_id: str, **overrides: Any) -> dict[str, Any]:
 
 
 def job_rows(settings: Any, ids: list[str]) -> dict[str, Any]:
-    from sqlalchemy import select
-
-    from osdar_platform.db import session_scope
-    from osdar_platform.models import Job
 
     with session_scope(settings) as s:
         return {j.id: j for j in s.scalars(select(Job).where(Job.id.in_(ids)))}
 
 
 def job_events(settings: Any, job_id: str) -> list[Any]:
-    from sqlalchemy import select
-
-    from osdar_platform.db import session_scope
-    from osdar_platform.models import JobEvent
 
     with session_scope(settings) as s:
         return list(
@@ -286,7 +286,6 @@ class Workers:
     deaths_seen: int = 0
 
     def start(self) -> subprocess.Popen[bytes]:
-        from worker.orchestration.embedded import start_worker
 
         proc = start_worker(
             self.settings, pool="prefork", concurrency=self.concurrency, log_file=self.log_file
@@ -300,7 +299,6 @@ class Workers:
 
     @staticmethod
     def children(proc: subprocess.Popen[bytes]) -> list[int]:
-        import psutil
 
         try:
             return [c.pid for c in psutil.Process(proc.pid).children()]
@@ -333,7 +331,6 @@ class Workers:
         return proc.pid
 
     def stop(self) -> None:
-        from worker.orchestration.embedded import stop_worker
 
         for proc in self.procs:
             stop_worker(proc, timeout_s=20)
@@ -362,7 +359,6 @@ class ApiServer:
     """The API under uvicorn in a thread of this process, on a free loopback port."""
 
     def __init__(self, settings: Any, celery_app: Any = None, **uvicorn_kw: Any) -> None:
-        from worker.orchestration.embedded import free_port
 
         self.settings = settings
         self.celery_app = celery_app
@@ -377,10 +373,6 @@ class ApiServer:
         return f"http://127.0.0.1:{self.port}"
 
     def __enter__(self) -> ApiServer:
-        import uvicorn
-
-        from service.app import create_app
-        from worker.orchestration.celery_app import make_celery
 
         celery = self.celery_app if self.celery_app is not None else make_celery(self.settings)
         self.app = create_app(self.settings, celery_app=celery)
@@ -405,7 +397,6 @@ class ApiServer:
         self.app.state.engine.dispose()
 
     def client(self, secret: str | None = None, **kw: Any) -> Any:
-        import httpx
 
         headers = {"Authorization": f"Bearer {secret}"} if secret else {}
         return httpx.Client(base_url=self.url, headers=headers, timeout=kw.pop("timeout", 60), **kw)
@@ -422,8 +413,6 @@ def parser(doc: str | None) -> argparse.ArgumentParser:
 
 @contextlib.contextmanager
 def workdir(path: Path | None, name: str) -> Iterator[Path]:
-    import shutil
-    import tempfile
 
     if path is not None:
         path.mkdir(parents=True, exist_ok=True)

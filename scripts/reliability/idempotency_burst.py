@@ -12,6 +12,11 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from celery import Celery
+from sqlalchemy import func, select
+
+from osdar_platform.db import session_scope
+from osdar_platform.models import Job
 from scripts.reliability import common as c
 
 NAME = "idempotency_burst"
@@ -20,16 +25,11 @@ NAME = "idempotency_burst"
 def run(
     workdir: Path, *, quick: bool = False, seed: int = 0, n: int | None = None
 ) -> dict[str, Any]:
-    from sqlalchemy import func, select
-
-    from osdar_platform.db import session_scope
-    from osdar_platform.models import Job
 
     n = n or 100  # the figure asked for, in both forms (it takes seconds)
     seq = c.synth_sequence(workdir / "seq" / "fire_site_rel")
     with c.pg_database() as db:
         settings = c.reliability_settings(workdir / "var", database_url=db, broker_url="memory://")
-        from celery import Celery
 
         sent: list[str] = []
         celery = Celery("burst", broker="memory://", set_as_current=False)

@@ -19,6 +19,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from osdar_platform.store import store_from_url
 from scripts.reliability import common as c
 
 NAME = "kill_workers"
@@ -27,7 +28,6 @@ NAME = "kill_workers"
 def run(
     workdir: Path, *, quick: bool = False, seed: int = 0, kills: int | None = None
 ) -> dict[str, Any]:
-    from osdar_platform.store import store_from_url
 
     n = kills or (3 if quick else 20)
     rng = random.Random(seed)

@@ -11,10 +11,16 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Any
 
+import httpx
+import uvicorn
+from celery import Celery
+
 from scripts.reliability import common as c
+from service.app import create_app
 
 NAME = "limits"
 MiB = 2**20
@@ -46,7 +52,6 @@ class CountingApp:
 
 
 def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
-    import httpx
 
     body_mib = 32 if quick else 256
     burst = 10
@@ -122,18 +127,12 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
 
 class _CountingServer(c.ApiServer):
     def __init__(self, settings: Any, counting_factory: Any) -> None:
-        from celery import Celery
 
         super().__init__(settings, celery_app=Celery("l", broker="memory://", set_as_current=False))
         self.counting_factory = counting_factory
         self.counting: Any = None
 
     def __enter__(self) -> _CountingServer:
-        import threading
-
-        import uvicorn
-
-        from service.app import create_app
 
         self.app = create_app(self.settings, celery_app=self.celery_app)
         self.counting = self.counting_factory(self.app)

@@ -13,18 +13,18 @@ import time
 from pathlib import Path
 from typing import Any
 
+from sqlalchemy import select
+
+from osdar_platform.db import session_scope
+from osdar_platform.models import ApiKey, Job, JobState
 from scripts.reliability import common as c
+from worker.orchestration.celery_app import QUEUE, make_celery
+from worker.orchestration.queue import enqueue_job
 
 NAME = "poison"
 
 
 def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
-    from sqlalchemy import select
-
-    from osdar_platform.db import session_scope
-    from osdar_platform.models import ApiKey, Job, JobState
-    from worker.orchestration.celery_app import QUEUE, make_celery
-    from worker.orchestration.queue import enqueue_job
 
     stages = ["prepare"] if quick else ["run_job", "fetch", "prepare", "evaluate", "publish"]
     n_good = 1 if quick else 3

@@ -16,11 +16,16 @@ import os
 import re
 import subprocess
 import sys
+import threading
 from collections import Counter
 from pathlib import Path
 from typing import Any
 
+import uvicorn
+from celery import Celery
+
 from scripts.reliability import common as c
+from service.app import create_app
 
 NAME = "schemathesis_run"
 
@@ -44,11 +49,6 @@ class StatusCounter:
 
 
 def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
-    import threading
-
-    import uvicorn
-
-    from service.app import create_app
 
     examples = 15 if quick else 150
     root = workdir / "roots"
@@ -62,7 +62,6 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
             max_sequence_upload_bytes=2**20,
             max_asset_upload_bytes=2**20,
         )
-        from celery import Celery
 
         secret = c.new_api_key(settings, "alice")
         app = create_app(

@@ -20,7 +20,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from moto.server import ThreadedMotoServer
+
+from osdar_platform.store import S3Store, store_from_url
 from scripts.reliability import common as c
+from worker.orchestration.embedded import free_port
 
 NAME = "store_outage"
 BUCKET = "osdar-rel"
@@ -31,7 +35,6 @@ class Moto:
     (its state lives in this process, so objects survive the outage)."""
 
     def __init__(self) -> None:
-        from worker.orchestration.embedded import free_port
 
         self.port = free_port()
         self.server: Any = None
@@ -42,7 +45,6 @@ class Moto:
         return f"http://127.0.0.1:{self.port}"
 
     def start(self) -> None:
-        from moto.server import ThreadedMotoServer
 
         logging.getLogger("werkzeug").setLevel(logging.ERROR)  # one line per request
         deadline = time.monotonic() + 20
@@ -77,7 +79,6 @@ def _complete(store: Any, key: str) -> bool:
 
 
 def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
-    from osdar_platform.store import S3Store, store_from_url
 
     n_jobs, outage = (2, 8.0) if quick else (5, 20.0)
     seq = c.synth_sequence(workdir / "seq" / "fire_site_rel")

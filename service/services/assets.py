@@ -11,6 +11,7 @@ from osdar_platform.models import ACTIVE_STATES, ApiKey, Asset, Job, new_id
 from osdar_platform.settings import Settings
 from osdar_platform.store import ObjectStore
 from service.errors import Conflict, Invalid, NotFound
+from worker.orchestration.inspect import InspectionError, inspect_mesh
 
 
 def create_asset(
@@ -25,7 +26,6 @@ def create_asset(
     store: ObjectStore,
 ) -> Asset:
     """Load the mesh with its explicit file type (caps on vertices and faces), store it."""
-    from worker.orchestration.inspect import InspectionError, inspect_mesh  # trimesh, lazily
 
     try:
         info = inspect_mesh(

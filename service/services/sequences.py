@@ -14,11 +14,11 @@ from osdar_platform.models import ACTIVE_STATES, ApiKey, Job, Sequence, new_id
 from osdar_platform.settings import Settings
 from osdar_platform.store import ObjectStore
 from service.errors import Conflict, Invalid, NotFound
+from worker.orchestration.inspect import InspectionError, inspect_sequence
 
 
 def _inspect(folder: Path, loc: tuple[str | int, ...]) -> dict[str, Any]:
     # The pipeline (numpy, the OSDaR23 reader) is imported here, at request time only.
-    from worker.orchestration.inspect import InspectionError, inspect_sequence
 
     try:
         return inspect_sequence(folder)

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import open3d as o3d
 from numpy.typing import NDArray
 
 from geometry.transforms import make_T, transform_points
@@ -221,7 +222,6 @@ def resolve_placement(
 
 def snap_height(proxies: ProxyMesh, p_world: F64) -> float | None:
     """Height of the highest proxy surface below (or at most 6 m above) a point, or None."""
-    import open3d as o3d
 
     origin = p_world.copy()
     v = (proxies.vertices - origin).astype(np.float32)

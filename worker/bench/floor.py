@@ -19,7 +19,9 @@ from typing import Any
 
 import cv2
 
-from worker.augmentation.augment import _pool_context
+from worker.augmentation.augment import augment
+from worker.augmentation.pool import pool_context
+from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel, RenderSpec
 from worker.osdar.errors import atomic_write_bytes
 from worker.osdar.pcd import read_pcd, write_pcd
 from worker.osdar.sequence import Sequence
@@ -62,7 +64,7 @@ def measure_floor(
             _io_frame(jobs, compression)
         wall = time.perf_counter() - tic
     else:
-        with ProcessPoolExecutor(workers, mp_context=_pool_context()) as pool:
+        with ProcessPoolExecutor(workers, mp_context=pool_context()) as pool:
             list(pool.map(_noop, range(workers * 2)))  # workers up before the clock
             tic = time.perf_counter()
             list(pool.map(_io_frame, tasks, [compression] * len(tasks)))
@@ -83,8 +85,6 @@ def floor_ratio(
     png_compression: int = 1,
 ) -> dict[str, Any]:
     """{"floor_ratio", "floor_s", "job_s", "workers", "frames"}."""
-    from worker.augmentation.augment import augment
-    from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel, RenderSpec
 
     seq = Sequence.open(seq_folder)
     spec = AugmentSpec(

@@ -16,6 +16,7 @@ enough); without it they report ``skipped``.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -26,8 +27,24 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import trimesh
 
+from geometry.camera import CameraModel, load_cameras
+from geometry.poses import PoseTrack
+from geometry.transforms import make_T, quat_to_matrix, transform_points
 from osdar_platform.shared_data import real_labels_path
+from renderer.mesh import ObjectMesh
+from renderer.object_render import ObjectRenderer
+from worker.evaluation.landmark_error import landmark_errors
+from worker.osdar.errors import SequenceError
+from worker.osdar.labels import pose_to_matrix
+from worker.osdar.pcd import PointCloud, read_pcd, write_pcd
+from worker.osdar.sequence import Sequence
+from worker.preparation.centreline import Centreline
+from worker.preparation.localization import make_input, run_strategy
+from worker.preparation.registration import register_clouds
+from worker.preparation.tracks import find_tracks
+from worker.synth.generator import SynthConfig, generate
 
 log = logging.getLogger(__name__)
 
@@ -97,9 +114,6 @@ class HardContext:
         self._cams: dict[str, Any] | None = None
 
     def sequence(self, name: str, **kw: Any) -> Path:
-        import hashlib
-
-        from worker.synth.generator import SynthConfig, generate
 
         digest = hashlib.sha256(json.dumps(kw, sort_keys=True, default=str).encode()).hexdigest()
         folder = self.root / f"{name}_{self.frames}_{digest[:8]}"
@@ -111,8 +125,6 @@ class HardContext:
 
     def real_cameras(self) -> dict[str, Any]:
         if self._cams is None:
-            from geometry.camera import load_cameras
-
             if not REAL_LABELS.is_file():
                 raise FileNotFoundError(f"{REAL_LABELS} not available")
             self._cams = load_cameras(json.loads(REAL_LABELS.read_text()))
@@ -138,21 +150,17 @@ def _result(n: int, title: str, degrades: str, warning: str, error: float, bound
 
 
 def _ego(folder: Path) -> Any:
-    from worker.preparation.centreline import Centreline
 
     entries = json.loads((folder / "ground_truth/centrelines.json").read_text())
     return next(Centreline.from_json(e) for e in entries if e.get("ego"))
 
 
 def _truth(folder: Path) -> Any:
-    from geometry.poses import PoseTrack
 
     return PoseTrack.from_csv(folder / "ground_truth/poses.csv")
 
 
 def _strategies(folder: Path, names: tuple[str, ...], rails: bool = True) -> dict[str, Any]:
-    from worker.osdar.sequence import Sequence
-    from worker.preparation.localization import make_input, run_strategy
 
     inp = make_input(Sequence.open(folder), ego=_ego(folder) if rails else None)
     return {n: run_strategy(n, inp) for n in names}
@@ -183,9 +191,6 @@ class _Captured(logging.Handler):
 
 # ---------------------------------------------------------------------------- render cases
 def _sphere(radius: float) -> Any:
-    import trimesh
-
-    from renderer.mesh import ObjectMesh
 
     s = trimesh.creation.icosphere(subdivisions=4, radius=radius)
     v = np.asarray(s.vertices) + np.array([0.0, 0.0, radius])
@@ -194,9 +199,6 @@ def _sphere(radius: float) -> Any:
 
 
 def _box(size: tuple[float, float, float]) -> Any:
-    import trimesh
-
-    from renderer.mesh import ObjectMesh
 
     b = trimesh.creation.box(extents=size)
     v = np.asarray(b.vertices) + np.array([0.0, 0.0, size[2] / 2])
@@ -205,14 +207,12 @@ def _box(size: tuple[float, float, float]) -> Any:
 
 
 def _vehicle(origin: np.ndarray | None = None) -> np.ndarray:
-    from geometry.transforms import make_T, quat_to_matrix
 
     R = quat_to_matrix([0.01, -0.02, np.sin(0.35), np.cos(0.35)])
     return make_T(R, np.array([12.0, -7.0, 0.4]) + (0.0 if origin is None else origin))
 
 
 def _place(T_wb: np.ndarray, p_base: tuple[float, float, float]) -> np.ndarray:
-    from geometry.transforms import make_T
 
     return T_wb @ make_T(np.eye(3), p_base)
 
@@ -224,7 +224,6 @@ def _centroid(r: Any) -> np.ndarray:
 
 
 def case_1(ctx: HardContext) -> dict[str, Any]:
-    from renderer.object_render import ObjectRenderer
 
     title = "world coordinates far from the origin (UTM magnitudes)"
     cam = ctx.real_cameras()["rgb_highres_center"]  # full resolution
@@ -243,8 +242,6 @@ def case_1(ctx: HardContext) -> dict[str, Any]:
 
 
 def case_7(ctx: HardContext) -> dict[str, Any]:
-    from geometry.transforms import make_T, transform_points
-    from renderer.object_render import ObjectRenderer
 
     title = "object partly outside, behind the camera, crossing the near plane, at 2 m"
     cam = ctx.real_cameras()["rgb_center"].scaled(0.25)
@@ -282,7 +279,6 @@ def case_7(ctx: HardContext) -> dict[str, Any]:
 
 
 def case_11(ctx: HardContext) -> dict[str, Any]:
-    from renderer.object_render import ObjectRenderer
 
     title = "tiny far objects (< 4 px) and huge near ones (elephant at 3 m)"
     cam = ctx.real_cameras()["rgb_center"].scaled(0.25)
@@ -306,7 +302,6 @@ def case_11(ctx: HardContext) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------------- camera, poses
 def case_8(ctx: HardContext) -> dict[str, Any]:
-    from geometry.camera import CameraModel
 
     title = "real distortion with k3 up to 2.48 (rgb_highres_right)"
     cam = ctx.real_cameras()["rgb_highres_right"]
@@ -332,9 +327,6 @@ def case_8(ctx: HardContext) -> dict[str, Any]:
 
 
 def case_9(ctx: HardContext) -> dict[str, Any]:
-    from geometry.poses import PoseTrack
-    from geometry.transforms import quat_to_matrix
-    from worker.osdar.labels import pose_to_matrix
 
     title = "non-unit or sign-flipping quaternions in the input"
     rng = np.random.default_rng(3)
@@ -355,7 +347,6 @@ def case_9(ctx: HardContext) -> dict[str, Any]:
     mid = t[:-1] + 0.05
     Ta, Tb = a.interpolate(mid), b.interpolate(mid)
     errs.append(float(np.abs(Ta - Tb).max()))
-    from worker.osdar.errors import SequenceError
 
     try:
         pose_to_matrix({"translation": [0, 0, 0], "quaternion": [0, 0, 0, 0]}, "case9", "cs")
@@ -401,9 +392,6 @@ def case_4(ctx: HardContext) -> dict[str, Any]:
 
 
 def case_5(ctx: HardContext) -> dict[str, Any]:
-    from worker.osdar.sequence import Sequence
-    from worker.preparation.registration import register_clouds
-    from worker.preparation.tracks import find_tracks
 
     title = "several parallel tracks and a switch"
     # Bound 8 cm: the neighbour is metres away, a jump would be obvious. The maximum lateral
@@ -432,7 +420,6 @@ def case_5(ctx: HardContext) -> dict[str, Any]:
 
 
 def case_6(ctx: HardContext) -> dict[str, Any]:
-    from worker.osdar import errors as osdar_errors  # noqa: F401 - the warning's logger
 
     title = "GNSS jump of metres, missing INS rows, a dropped frame"
     cap = _Captured()
@@ -460,8 +447,6 @@ def case_6(ctx: HardContext) -> dict[str, Any]:
 
 
 def case_10(ctx: HardContext) -> dict[str, Any]:
-    from worker.osdar.pcd import PointCloud, read_pcd, write_pcd
-    from worker.osdar.sequence import Sequence
 
     title = "empty, NaN-laden or very sparse clouds; no rails found"
     src = ctx.sequence("fire_site", scene="fire_site")
@@ -493,9 +478,6 @@ def case_10(ctx: HardContext) -> dict[str, Any]:
 
 
 def case_12(ctx: HardContext) -> dict[str, Any]:
-    from geometry.poses import PoseTrack
-    from worker.evaluation.landmark_error import landmark_errors
-    from worker.osdar.sequence import Sequence
 
     title = "different timestamps per sensor within one frame"
     folder = ctx.sequence("fire_site", scene="fire_site")
@@ -503,7 +485,6 @@ def case_12(ctx: HardContext) -> dict[str, Any]:
     gt = folder / "ground_truth"
     dense = PoseTrack.from_csv(gt / "poses_dense.csv")
     meta = json.loads((gt / "meta.json").read_text())
-    from geometry.camera import CameraModel
 
     cam = CameraModel.from_json(meta["cameras_full_resolution"]["rgb_highres_center"])
     lms = json.loads((gt / "landmarks.json").read_text())

@@ -14,6 +14,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from worker.evaluation.evaluate import evaluate_strategies
+from worker.preparation.config import PrepareConfig
+from worker.preparation.prepare import run_preparation
+from worker.synth.generator import SynthConfig, generate
+
 log = logging.getLogger(__name__)
 
 #: scene -> the paper's sequence it stands for.
@@ -73,7 +78,6 @@ class BenchSettings:
 
 def make_sequence(root: Path, scene: str, s: BenchSettings, **extra: Any) -> Path:
     """Generate (once; deterministic from the settings) a synthetic sequence."""
-    from worker.synth.generator import SynthConfig, generate
 
     tag = f"{scene}_f{s.frames}_s{s.scale:g}_d{s.lidar_density:g}_r{s.seed}_{s.ins_profile}"
     tag += "".join(f"_{k}" for k in sorted(extra))
@@ -89,8 +93,6 @@ def make_sequence(root: Path, scene: str, s: BenchSettings, **extra: Any) -> Pat
 
 def prepare_timed(seq: Path, strategy: str, voxel_size: float = 0.1) -> tuple[Any, float]:
     """A full preparation (no cache) with one strategy: (PreparedSequence, seconds)."""
-    from worker.preparation.config import PrepareConfig
-    from worker.preparation.prepare import run_preparation
 
     cfg = PrepareConfig(strategy=strategy).with_overrides(registration={"voxel_size": voxel_size})
     t0 = time.perf_counter()
@@ -102,7 +104,6 @@ def run_sequence(
     seq: Path, scene: str, s: BenchSettings, prepared_out: dict | None = None
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Rows of one sequence (every strategy, both cameras) and its evaluation metrics."""
-    from worker.evaluation.evaluate import evaluate_strategies
 
     tracks, prep, world = {}, {}, None
     for strat in s.strategies:

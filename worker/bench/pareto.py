@@ -10,6 +10,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import matplotlib
+import matplotlib.pyplot as plt
+
+from worker.bench.paper import prepare_timed
+from worker.evaluation.evaluate import evaluate_strategies
+
 
 def config_name(strategy: str, voxel_size: float) -> str:
     return f"{strategy} voxel={voxel_size:g}"
@@ -23,8 +29,6 @@ def run_configs(
 ) -> list[dict[str, Any]]:
     """[{config, strategy, voxel_size, seconds, error_px, jitter_px}] for each config;
     ``known`` {config name: {"seconds", "error_px", "jitter_px"}} is reused, not rerun."""
-    from worker.bench.paper import prepare_timed
-    from worker.evaluation.evaluate import evaluate_strategies
 
     out = []
     for strategy, voxel in configs:
@@ -72,10 +76,8 @@ def plot_pareto(rows: list[dict[str, Any]], out_png: Path, title: str = "") -> P
     ok = [r for r in rows if r.get("error_px") is not None]
     if not ok:
         return None
-    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for strat in dict.fromkeys(r["strategy"] for r in ok):

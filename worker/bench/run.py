@@ -10,8 +10,11 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from worker.bench.floor import floor_ratio
+from worker.bench.hard_cases import format_hard_table, run_hard_cases
 from worker.bench.paper import BenchSettings, format_table, make_sequence, paper_band, run_sequence
 from worker.bench.pareto import config_name, pareto_front, plot_pareto, run_configs
+from worker.evaluation.evaluate import _finite, write_rows_csv
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +81,6 @@ def run_bench(
     t_start = time.perf_counter()
     result: dict[str, Any] = {"quick": quick, "settings": asdict(s)}
     if hard:
-        from worker.bench.hard_cases import format_hard_table, run_hard_cases
-
         cases = run_hard_cases(workdir / "hard", reduced=quick)
         _print("hard cases (case | what degrades | warning given | error vs bound)")
         _print(format_hard_table(cases))
@@ -153,8 +154,6 @@ def run_bench(
     _write_csv(workdir / "pareto.csv", pareto_rows)
 
     if floor and prepared_first:
-        from worker.bench.floor import floor_ratio
-
         strat = "fused" if "fused" in prepared_first else next(iter(prepared_first))
         fr = floor_ratio(
             seqs[first], prepared_first[strat], workdir / "floor_scratch",
@@ -176,7 +175,6 @@ def run_bench(
 
 
 def _write_per_frame(path: Path, rows: list[dict[str, Any]]) -> None:
-    from worker.evaluation.evaluate import write_rows_csv
 
     write_rows_csv(rows, path)
 
@@ -194,7 +192,6 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 def _write(result: dict[str, Any], json_path: Path | None) -> None:
     if json_path is None:
         return
-    from worker.evaluation.evaluate import _finite
 
     json_path = Path(json_path)
     json_path.parent.mkdir(parents=True, exist_ok=True)

@@ -47,16 +47,35 @@ The per-frame CSV has one row per (camera, strategy, landmark, frame):
 
 from __future__ import annotations
 
+import csv
 import json
 import logging
 import math
 from pathlib import Path
 from typing import Any
 
+import cv2
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 
+from geometry.camera import CameraModel, load_cameras
+from geometry.geodesy import WorldFrame
+from geometry.poses import PoseTrack, reexpress
+from worker.evaluation.landmark_error import landmark_errors
+from worker.osdar.images import write_png
+from worker.osdar.sequence import Sequence
 from worker.preparation.artifact import PreparedSequence
+from worker.preparation.calibration_point import (
+    Clicks,
+    ClicksError,
+    calibration_point_from_clicks,
+    camera_at_resolution,
+    click_resolution,
+)
 from worker.preparation.config import CalibrationConfig
+from worker.preparation.frame_clouds import FrameClouds
+from worker.preparation.registration import dense_points
 
 log = logging.getLogger(__name__)
 
@@ -114,11 +133,6 @@ def _ground_truth(
     seq_folder: Path, prepared: PreparedSequence, cameras: list[str]
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """True pose errors and landmark RPE / jitter per camera and track (synthetic data)."""
-    from geometry.camera import CameraModel
-    from geometry.geodesy import WorldFrame
-    from geometry.poses import PoseTrack, reexpress
-    from worker.evaluation.landmark_error import landmark_errors
-    from worker.osdar.sequence import Sequence
 
     gt_dir = seq_folder / "ground_truth"
     meta = json.loads((gt_dir / "meta.json").read_text())
@@ -217,10 +231,8 @@ def plot_rpe_jitter(series: dict[str, Any], out_png: str | Path, title: str = ""
     """RPE per frame (top) and jitter (bottom) per camera; None when there is nothing."""
     if not series:
         return None
-    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     fig, (ax_r, ax_j) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
     for cam, s in sorted(series.items()):
@@ -270,8 +282,6 @@ def full_resolution_cameras(seq: Any, cameras: list[str]) -> dict[str, Any]:
     """The sequence's cameras at their full (sensor) resolution: synthetic sequences carry
     them in ``ground_truth/meta.json``; otherwise the labels' intrinsics rescaled to the
     OSDaR23 full size (the identity on real data)."""
-    from geometry.camera import CameraModel, load_cameras
-    from worker.preparation.calibration_point import camera_at_resolution, click_resolution
 
     meta_file = Path(seq.folder) / "ground_truth" / "meta.json"
     full = {}
@@ -294,7 +304,6 @@ def cloud_for_track(prepared: PreparedSequence, track: Any) -> np.ndarray:
     to ``track``'s pose of that frame: p' = T_track(f) T_chosen(f)^-1 p. Frames ``track``
     lacks keep their points where they are.
     """
-    from geometry.poses import PoseTrack
 
     cloud = prepared.cloud
     if track is prepared.track:
@@ -329,9 +338,6 @@ def synthetic_clicks(
     """Clicks from the ground truth of a synthetic sequence: one :class:`Clicks` per
     landmark, its true full-resolution pixel in every frame where it is ``near``-``far``
     m in front of the camera (true pose at the camera's timestamp), plus N(0, noise^2)."""
-    from geometry.poses import PoseTrack
-    from worker.osdar.sequence import Sequence
-    from worker.preparation.calibration_point import Clicks
 
     folder = Path(seq_folder)
     gt = folder / "ground_truth"
@@ -387,7 +393,6 @@ def rpe_from_clicks(
     {camera: {"xyz", "frames", "rpe", "click", "projected", "warnings"}} (pixels at the
     clicks' resolution; frames whose projection fails are left out).
     """
-    from worker.preparation.calibration_point import Clicks, calibration_point_from_clicks
 
     cfg = CalibrationConfig(search_radius_px=search_radius_px, dense_radius_m=dense_radius_m)
     out: dict[str, dict[str, Any]] = {}
@@ -460,9 +465,6 @@ def _true_errors(
     seq: Any, track: Any, world: Any, cams: dict[str, Any], clicks: list[Any]
 ) -> dict[str, Any]:
     """True pose errors and the pixel error of the true landmarks (synthetic data)."""
-    from geometry.geodesy import WorldFrame
-    from geometry.poses import PoseTrack, reexpress
-    from worker.evaluation.landmark_error import landmark_errors
 
     gt_dir = Path(seq.folder) / "ground_truth"
     truth = PoseTrack.from_csv(gt_dir / "poses.csv")
@@ -514,7 +516,6 @@ def _true_errors(
 
 def _frame_clouds(seq: Any) -> Any:
     """The sequence's frame clouds, full density, read once for every strategy."""
-    from worker.preparation.frame_clouds import FrameClouds
 
     return FrameClouds(seq, max_range=DENSE_MAX_RANGE_M)
 
@@ -556,7 +557,6 @@ def evaluate_strategies(
     -------
     (metrics, per-frame rows).
     """
-    from worker.osdar.sequence import Sequence
 
     folder = Path(seq_folder)
     seq = Sequence.open(folder)
@@ -573,8 +573,6 @@ def evaluate_strategies(
         )  # fmt: skip
     missing = sorted({c for cl in clicks for c in cl.uv} - set(seq.cameras))
     if missing:
-        from worker.preparation.calibration_point import ClicksError
-
         raise ClicksError(
             f"clicks name camera(s) {', '.join(missing)} that the sequence lacks "
             f"(it has: {', '.join(seq.cameras)})"
@@ -596,7 +594,6 @@ def evaluate_strategies(
         "dense_radius_m": dense_radius_m,
         "rpe": {},
     }
-    from worker.preparation.registration import dense_points
 
     rows: list[dict[str, Any]] = []
     clouds = _frame_clouds(seq) if dense_radius_m > 0 else None
@@ -643,7 +640,6 @@ ROW_FIELDS = (
 
 
 def write_rows_csv(rows: list[dict[str, Any]], path: str | Path) -> Path:
-    import csv
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -662,10 +658,8 @@ def plot_rpe_by_strategy(
     per camera."""
     if not rows:
         return None
-    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     cams = sorted({r["camera"] for r in rows})
     fig, axes = plt.subplots(len(cams), 1, figsize=(8, 3 * len(cams)), sharex=True, squeeze=False)
@@ -709,10 +703,6 @@ def render_overlays(
     projected radius of a ``radius_m`` sphere at that strategy's calibration point, and the
     click as a white cross. Default frames: first, middle and last clicked frame of the
     first landmark."""
-    import cv2
-
-    from worker.osdar.images import write_png
-    from worker.osdar.sequence import Sequence
 
     seq = Sequence.open(seq_folder)
     out_dir = Path(out_dir)
@@ -798,7 +788,6 @@ def tracks_from_prepared(
 
 def clicks_of(prepared: PreparedSequence) -> list[Any] | None:
     """The clicks the preparation used (from its calibration point), or None."""
-    from worker.preparation.calibration_point import Clicks
 
     cal = prepared.calibration
     if cal is None or cal.mode != "clicks" or not cal.observations:

@@ -25,9 +25,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from geometry.geodesy import WorldFrame
+from geometry.poses import PoseTrack
 from geometry.transforms import transform_points
+from worker.augmentation.frame import camera_renderer
 from worker.augmentation.placement import resolve_placement
+from worker.augmentation.plan import NEAR_PLANE_M
 from worker.augmentation.proxies import build_proxies
+from worker.osdar.sequence import Sequence
+from worker.preparation.artifact import PreparedSequence
+from worker.preparation.centreline import Centreline
 
 log = logging.getLogger(__name__)
 
@@ -37,10 +44,6 @@ F64 = NDArray[np.float64]
 def truth_prepared(seq_folder: str | Path) -> Any:
     """A PreparedSequence made of ``ground_truth/`` (dense true poses, true centrelines,
     true world frame; no planes, poles or calibration point)."""
-    from geometry.geodesy import WorldFrame
-    from geometry.poses import PoseTrack
-    from worker.preparation.artifact import PreparedSequence
-    from worker.preparation.centreline import Centreline
 
     gt = Path(seq_folder) / "ground_truth"
     dense = gt / "poses_dense.csv"
@@ -61,7 +64,6 @@ def truth_prepared(seq_folder: str | Path) -> Any:
 
 def true_object_pose(plan: Any, truth: Any) -> F64:
     """T_world_obj (4, 4) in the TRUE world frame for the plan's placement spec."""
-    from geometry.geodesy import WorldFrame
 
     spec = plan.spec.placement.to_spec()
     if spec.mode == "world":  # the spec's point is in the estimated world frame
@@ -81,7 +83,6 @@ def true_object_pose(plan: Any, truth: Any) -> F64:
 
 
 def _times(plan: Any, stream: str) -> dict[int, float]:
-    from worker.osdar.sequence import Sequence
 
     seq = Sequence.open(plan.seq_folder)
     ts = seq.timestamps(stream)
@@ -94,7 +95,6 @@ def evaluate_object(plan: Any, records: list[Any], truth: Any = None) -> dict[st
     records : the augmentation's FrameRecords (estimated anchors and masks).
     truth : a PreparedSequence of the ground truth (default :func:`truth_prepared`).
     """
-    from worker.augmentation.augment import NEAR_PLANE_M, _renderer
 
     truth = truth if truth is not None else truth_prepared(plan.seq_folder)
     T_world_obj = true_object_pose(plan, truth)
@@ -108,7 +108,7 @@ def evaluate_object(plan: Any, records: list[Any], truth: Any = None) -> dict[st
     for name, cam in plan.cameras.items():
         times = _times(plan, name)
         anchor_err, ious = [], []
-        renderer = _renderer(cam, plan.spec.render.antialias)
+        renderer = camera_renderer(cam, plan.spec.render.antialias)
         for rec in records:
             est = rec.cameras.get(name)
             if est is None or rec.frame_idx not in times:

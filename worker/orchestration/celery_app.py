@@ -15,8 +15,8 @@ it so, and the job code (``runner.py``, ``state.py``) makes the effects exactly 
 - ``worker_cancel_long_running_tasks_on_connection_loss``: a task whose message can no
   longer be acknowledged (broker connection lost) is cancelled: it will be redelivered;
 - ``worker_max_memory_per_child``: prefork children are recycled above that resident size;
-- the reaper (``reaper.py``) started by every worker when ready: jobs left RUNNING by a
-  task stopped at the hard time limit, or whose messages a broker restart lost, are
+- the reaper (``reaper.py``, started by ``lifecycle.py``) runs in every worker once
+  ready: jobs left RUNNING by a task stopped at the hard time limit, or whose messages a broker restart lost, are
   re-queued (or FAILED once delivered ``max_deliveries`` times).
 
 Results: job state lives in our ``jobs`` table; Celery's result backend is used only by
@@ -30,7 +30,6 @@ from __future__ import annotations
 from typing import Any
 
 from celery import Celery
-from celery.signals import worker_ready, worker_shutdown
 from sqlalchemy.engine import make_url
 
 from osdar_platform.settings import Settings, get_settings
@@ -105,26 +104,15 @@ def celery_config(settings: Settings) -> dict[str, Any]:
 def make_celery(settings: Settings | None = None, *, main: str = "osdar_ar") -> Celery:
     """A Celery app for ``settings`` (default: the environment's) with our tasks."""
     settings = settings or get_settings()
-    # The tasks are shared tasks: every app built here (tests, embedded mode) has them.
-    app = Celery(main, include=["worker.orchestration.tasks"], set_as_current=False)
+    # The tasks are shared tasks: every app built here (tests, embedded mode) has them;
+    # a worker also loads the lifecycle hooks (the reaper thread).
+    app = Celery(
+        main,
+        include=["worker.orchestration.tasks", "worker.orchestration.lifecycle"],
+        set_as_current=False,
+    )
     app.conf.update(celery_config(settings))
     return app
-
-
-@worker_ready.connect
-def _start_reaper(sender: Any = None, **_: Any) -> None:
-    """Every worker sweeps for lost jobs at start and then periodically (reaper.py)."""
-    from worker.orchestration.reaper import start_reaper
-
-    app = getattr(sender, "app", None) or celery_app
-    start_reaper(get_settings(), app)
-
-
-@worker_shutdown.connect
-def _stop_reaper(**_: Any) -> None:
-    from worker.orchestration.reaper import stop_reaper
-
-    stop_reaper()
 
 
 #: The process's app (``celery -A worker.orchestration.celery_app worker``; the API's sender).

@@ -29,9 +29,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+import uvicorn
 from pydantic import SecretStr
 
+from osdar_platform.migrate import upgrade
 from osdar_platform.settings import Settings
+from service.app import create_app
 from worker.orchestration.celery_app import QUEUE, make_celery
 from worker.orchestration.threads import thread_caps
 
@@ -180,13 +183,8 @@ class Embedded:
         return f"http://{self.host}:{self.port}"
 
     def start(self) -> Embedded:
-        import uvicorn
-
-        from service.app import create_app
 
         if self.migrate:
-            from osdar_platform.migrate import upgrade
-
             upgrade(database_url=str(self.settings.database_url))
         self.worker = start_worker(
             self.settings, pool=self.pool, concurrency=self.concurrency, log_file=self.log_file

@@ -16,7 +16,9 @@ from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select, update
 
+from osdar_platform.db import get_sessionmaker
 from osdar_platform.models import Job, JobEvent, JobState, utcnow
+from worker.orchestration.celery_app import celery_app
 
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
@@ -32,7 +34,6 @@ TASK_RUN_JOB = "osdar_ar.run_job"
 def _celery_app(app: Any) -> Any:
     if app is not None:
         return app
-    from worker.orchestration.celery_app import celery_app  # lazily: Celery is the workers' side
 
     return celery_app
 
@@ -40,7 +41,6 @@ def _celery_app(app: Any) -> Any:
 def _sessions(settings: Settings | None, sessions: sessionmaker[Session] | None) -> Any:
     if sessions is not None:
         return sessions
-    from osdar_platform.db import get_sessionmaker
 
     return get_sessionmaker(settings)
 

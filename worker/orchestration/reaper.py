@@ -43,10 +43,15 @@ from dataclasses import dataclass, field
 from datetime import timedelta
 from typing import Any
 
+import redis
 from sqlalchemy import select, update
 
+from osdar_platform.db import make_engine, make_sessionmaker
 from osdar_platform.models import Job, JobEvent, JobState, utcnow
 from osdar_platform.settings import Settings
+from worker.orchestration.celery_app import QUEUE, make_celery
+from worker.orchestration.queue import TASK_RUN_JOB, requeue_pending
+from worker.orchestration.state import POISON_REASON
 
 log = logging.getLogger(__name__)
 
@@ -94,9 +99,6 @@ def broker_messages_text(settings: Settings) -> str | None:
     url = str(settings.broker_url)
     if not url.startswith(("redis://", "rediss://")):
         return None
-    import redis
-
-    from worker.orchestration.celery_app import QUEUE
 
     client = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5)
     try:
@@ -123,8 +125,6 @@ def _requeue(
     why: str,
 ) -> str | None:
     """Claim the job (conditional update) and send it again; 'requeued'/'failed'/None."""
-    from worker.orchestration.queue import TASK_RUN_JOB
-    from worker.orchestration.state import POISON_REASON
 
     now = utcnow()
     claim = [Job.id == job_id, Job.state == seen_state, Job.updated_at == seen_updated]
@@ -175,12 +175,8 @@ def _requeue(
 
 def reap(settings: Settings, app: Any = None, *, sessions: Any = None) -> ReapReport:
     """One sweep (module docstring); safe to run in many processes at once."""
-    from osdar_platform.db import make_engine, make_sessionmaker
-    from worker.orchestration.queue import requeue_pending
 
     if app is None:
-        from worker.orchestration.celery_app import make_celery
-
         app = make_celery(settings)
     report = ReapReport()
     engine = None

@@ -11,8 +11,7 @@ One job = one recipe (:func:`run_job_inline` reads it top to bottom)::
     package_job      archive: output sequence + metrics.json + report + previews
     publish_job      upload under an attempt-scoped key, then ONE conditional row update
 
-[*] when ``worker/augmentation/augment.py`` exists (:func:`augmentation_module`); until
-then the output sequence is the input sequence, packaged with its evaluation.
+[*] the chunks of one job can run on several workers at once (a Celery chord).
 
 Every stage runs inside :func:`_stage`: it checks that the attempt is still current and
 not cancelled, counts the stage's deliveries (a stage that keeps killing its worker fails
@@ -27,7 +26,6 @@ are re-created from the store or the cache when missing.
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import os
@@ -44,10 +42,18 @@ from typing import Any
 
 from sqlalchemy import select
 
+from osdar_platform.archive_safety import ArchiveLimits, UnsafeArchive, extract_archive
 from osdar_platform.db import session_scope
-from osdar_platform.models import Job, JobState, Sequence
+from osdar_platform.models import Asset, Job, JobState, Sequence
+from osdar_platform.retry import RetryingStore
 from osdar_platform.settings import Settings, get_settings
-from osdar_platform.store import ObjectStore, store_from_url
+from osdar_platform.store import ObjectStore, StoreError, store_from_url
+from worker.augmentation.finish import finish_augmentation
+from worker.augmentation.frame import ChunkResult, augment_frames
+from worker.augmentation.placement import PlacementError
+from worker.augmentation.plan import AugmentError, Plan, plan_augmentation
+from worker.augmentation.spec import AugmentSpec
+from worker.evaluation.evaluate import evaluate_sequence, plot_rpe_jitter
 from worker.orchestration import state
 from worker.orchestration.state import (
     POISON_REASON,
@@ -56,10 +62,17 @@ from worker.orchestration.state import (
     JobStop,
     JobSuperseded,
 )
+from worker.osdar.errors import SequenceError
+from worker.osdar.sequence import find_labels_file
+from worker.packaging import build_archive, make_previews
+from worker.preparation.artifact import key_lock
+from worker.preparation.calibration_point import Clicks, ClicksError
+from worker.preparation.config import PrepareConfig
+from worker.preparation.artifact import PreparedSequence
+from worker.preparation.prepare import PreparationError, prepare
 
 log = logging.getLogger(__name__)
 
-AUGMENT_MODULE = "worker.augmentation.augment"
 ARCHIVE_NAME = "archive.tar.gz"
 #: Exit code of the test-only crash hook (a worker process killed mid-task).
 TEST_CRASH_EXIT_CODE = 70
@@ -80,8 +93,6 @@ class JobRun:
     def store(self) -> ObjectStore:
         """The object store, every call retried with backoff (osdar_platform/retry.py)."""
         if self._store is None:
-            from osdar_platform.retry import RetryingStore
-
             s = self.settings
             self._store = RetryingStore(
                 store_from_url(str(s.store_url), s),
@@ -155,9 +166,6 @@ class StageError(Exception):
 
 def describe_error(stage: str, exc: BaseException) -> str:
     """A readable failure reason: the user's problem said plainly, ours named as such."""
-    from osdar_platform.archive_safety import UnsafeArchive
-    from osdar_platform.store import StoreError
-    from worker.osdar.errors import SequenceError
 
     name = type(exc).__name__
     if name == "SoftTimeLimitExceeded":
@@ -168,18 +176,7 @@ def describe_error(stage: str, exc: BaseException) -> str:
         UnsafeArchive,
         StoreError,
     )
-    try:
-        from worker.preparation.calibration_point import ClicksError
-        from worker.preparation.prepare import PreparationError
-
-        user_errors += (PreparationError, ClicksError)
-    except ImportError:  # pragma: no cover - the pipeline is always installed on workers
-        pass
-    mod = augmentation_module()
-    if mod is not None:
-        from worker.augmentation.placement import PlacementError
-
-        user_errors += (mod.AugmentError, PlacementError)
+    user_errors += (PreparationError, ClicksError, AugmentError, PlacementError)
     if isinstance(exc, user_errors):
         return f"{stage}: {exc}"
     return f"{stage}: internal error ({name}: {exc})"
@@ -313,8 +310,6 @@ def plan_chunks(
 # ---------------------------------------------------------------------------- fetch
 def _local_sequence(run: JobRun) -> Path:
     """The sequence folder on this machine: its registered path, or its upload fetched."""
-    from worker.osdar.sequence import find_labels_file
-    from worker.preparation.artifact import key_lock
 
     seq = run.info["sequence"]
     if seq is None:
@@ -324,7 +319,6 @@ def _local_sequence(run: JobRun) -> Path:
         return folder
     if not seq["content_key"]:
         raise StageError(f"sequence folder {folder} is not readable on this worker")
-    from osdar_platform.archive_safety import ArchiveLimits, extract_archive
 
     base = Path(run.settings.cache_dir) / "sequences" / seq["id"]
     marker = base / "root.txt"
@@ -353,11 +347,8 @@ def fetch_sequence(
 
 
 # ---------------------------------------------------------------------------- prepare
-def _prepare(run: JobRun, progress: Any = None) -> Any:
+def _prepare(run: JobRun, progress: Any = None) -> PreparedSequence:
     """The prepared sequence of the job (from the per-key cache when it is there)."""
-    from worker.preparation.calibration_point import Clicks
-    from worker.preparation.config import PrepareConfig
-    from worker.preparation.prepare import prepare
 
     spec = run.spec
     config = PrepareConfig(strategy=spec.get("strategy") or "auto")
@@ -376,7 +367,7 @@ def _prepare(run: JobRun, progress: Any = None) -> Any:
 
 def prepare_for_job(
     job_id: str, *, attempt: int | None = None, settings: Settings | None = None
-) -> Any:
+) -> PreparedSequence:
     """Preparation of the job's sequence (shared by every job on it); returns it."""
     run = _run(job_id, attempt, settings)
     with _stage(run, "prepare"):
@@ -405,34 +396,23 @@ def prepare_for_job(
 
 
 # ---------------------------------------------------------------------------- augment
-def augmentation_module() -> Any | None:
-    """``worker.augmentation.augment`` when it exists (the one place it is plugged in)."""
-    try:
-        return importlib.import_module(AUGMENT_MODULE)
-    except ModuleNotFoundError as exc:
-        if exc.name == AUGMENT_MODULE:
-            return None
-        raise
-
-
-def _augment_spec(run: JobRun, mod: Any) -> Any:
+def _augment_spec(run: JobRun) -> AugmentSpec:
     """The augmentation's spec from the job spec (an uploaded mesh read from the store)."""
-    from osdar_platform.models import Asset
 
     spec = run.spec
     asset_id = (spec.get("object") or {}).get("asset_id")
     if asset_id is None:
-        return mod.AugmentSpec.from_job_spec(spec)
+        return AugmentSpec.from_job_spec(spec)
     with session_scope(run.settings) as s:
         asset = s.get(Asset, asset_id)
         where = None if asset is None else (asset.store_key, asset.file_type)
     if where is None:
         raise StageError(f"asset {asset_id} was deleted")
     data = b"".join(run.store.open_read(where[0]))
-    return mod.AugmentSpec.from_job_spec(spec, mesh_bytes=data, file_type=where[1])
+    return AugmentSpec.from_job_spec(spec, mesh_bytes=data, file_type=where[1])
 
 
-def _plan(run: JobRun, mod: Any) -> Any:
+def _plan(run: JobRun) -> Plan:
     """The augmentation plan of this attempt: computed once, shared through the store.
 
     Every chunk needs it; the first worker to need it computes and uploads it (a race
@@ -450,7 +430,7 @@ def _plan(run: JobRun, mod: Any) -> Any:
             tmp.replace(local)
         else:
             prepared = _prepare(run)
-            plan = mod.plan_augmentation(_local_sequence(run), _augment_spec(run, mod), prepared)
+            plan = plan_augmentation(_local_sequence(run), _augment_spec(run), prepared)
             if prepared.calibration is not None:
                 plan.info["calibration"] = prepared.calibration.summary()
             tmp.write_bytes(pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL))
@@ -482,20 +462,17 @@ def augment_chunk(
 
     Returns ``{"index", "frames", "files", "records"}``: store keys, JSON for the chord.
     """
-    mod = augmentation_module()
-    if mod is None:
-        raise RuntimeError(f"{AUGMENT_MODULE} is not installed")
     run = _run(job_id, attempt, settings)
     with _stage(run, f"augment[{index}]"):
         state.set_stage(run.job_id, run.attempt, "augment", settings=run.settings)
-        plan = _plan(run, mod)
+        plan = _plan(run)
         out = _chunk_dir(run, index)
         shutil.rmtree(out, ignore_errors=True)
         out.mkdir(parents=True)
-        result = None
+        result: ChunkResult | None = None
         for f in frames:  # one frame at a time: progress, and a cancel stops here
             state.check_attempt(run.job_id, run.attempt, settings=run.settings)
-            part = mod.augment_frames(plan, [f], out)
+            part = augment_frames(plan, [f], out)
             if result is None:
                 result = part
             else:
@@ -519,9 +496,8 @@ def _output_folder(run: JobRun) -> Path:
     return run.workdir / "output" / (run.info["sequence"] or {}).get("name", "sequence")
 
 
-def _chunk_results(run: JobRun, chunks: list[dict[str, Any]]) -> list[Any]:
+def _chunk_results(run: JobRun, chunks: list[dict[str, Any]]) -> list[ChunkResult]:
     """Every chunk's records, with its files on this machine (downloaded if need be)."""
-    from osdar_platform.archive_safety import ArchiveLimits, extract_archive
 
     out = []
     for c in sorted(chunks, key=lambda c: c["index"]):
@@ -541,18 +517,17 @@ def _chunk_results(run: JobRun, chunks: list[dict[str, Any]]) -> list[Any]:
 
 def _assemble_output(run: JobRun, chunks: list[dict[str, Any]]) -> tuple[Path, dict[str, Any]]:
     """The complete output sequence from the chunks (the augmentation's finish)."""
-    mod = augmentation_module()
     out = _output_folder(run)
     shutil.rmtree(out.parent, ignore_errors=True)
     out.parent.mkdir(parents=True)
-    plan = _plan(run, mod)
+    plan = _plan(run)
     results = _chunk_results(run, chunks)
     # finish_augmentation MOVES the chunks' files into the output: from here on the local
     # chunk folders are no longer whole, so a finish killed half-way and run again must
     # fetch them from the store instead of trusting them.
     for c in chunks:
         _chunk_done(run, c["index"]).unlink(missing_ok=True)
-    metrics = mod.finish_augmentation(plan, results, out, overwrite=True)
+    metrics = finish_augmentation(plan, results, out, overwrite=True)
     shutil.rmtree(run.workdir / "chunks", ignore_errors=True)
     (out.parent / ".complete").write_text("ok")
     return out, json.loads(json.dumps(metrics, default=str))
@@ -579,9 +554,7 @@ def finish_job(
 
 
 def output_sequence(run: JobRun) -> Path:
-    """The folder to package: the augmented sequence, or the input before augmentation."""
-    if augmentation_module() is None:
-        return _local_sequence(run)
+    """The folder to package: the augmented sequence (rebuilt here when need be)."""
     out = _output_folder(run)
     if (out.parent / ".complete").is_file():
         return out
@@ -596,7 +569,6 @@ def evaluate_job(
     job_id: str, *, attempt: int | None = None, settings: Settings | None = None
 ) -> dict[str, Any]:
     """RPE / jitter of the job's poses (and true errors on synthetic data) -> metrics."""
-    from worker.evaluation.evaluate import evaluate_sequence
 
     run = _run(job_id, attempt, settings)
     with _stage(run, "evaluate"):
@@ -624,8 +596,6 @@ def _archive_path(run: JobRun) -> Path:
 
 def _report(run: JobRun, metrics: dict[str, Any]) -> dict[str, Path]:
     """metrics.json, the RPE/jitter plot, previews, preparation summary -> {arcname: file}."""
-    from worker.evaluation.evaluate import plot_rpe_jitter
-    from worker.packaging import make_previews
 
     report = run.workdir / "report"
     shutil.rmtree(report, ignore_errors=True)
@@ -659,20 +629,10 @@ def package_job(
 
 
 def _package(run: JobRun) -> Path:
-    from worker.packaging import build_archive
 
     metrics = state.get_metrics(run.job_id, settings=run.settings)
     extra = _report(run, metrics)
-    augmented = augmentation_module() is not None
-    total = run.info["progress_total"]
-
-    def progress(done: int, files: int) -> None:
-        if not augmented and total:  # the frame-wise stage until augmentation exists
-            state.check_attempt(run.job_id, run.attempt, settings=run.settings)
-            frames = total * done // max(files, 1)
-            state.set_progress(run.job_id, run.attempt, frames, settings=run.settings)
-
-    return build_archive(output_sequence(run), _archive_path(run), extra=extra, progress=progress)
+    return build_archive(output_sequence(run), _archive_path(run), extra=extra)
 
 
 # ---------------------------------------------------------------------------- publish
@@ -739,12 +699,11 @@ def run_job_inline(job_id: str, *, settings: Settings | None = None) -> JobState
         kw: dict[str, Any] = {"attempt": attempt, "settings": settings}
         fetch_sequence(job_id, **kw)
         prepare_for_job(job_id, **kw)
-        if augmentation_module() is not None:
-            chunks = [
-                augment_chunk(job_id, i, frames, **kw)
-                for i, frames in enumerate(plan_chunks(job_id, **kw))
-            ]
-            finish_job(job_id, chunks, **kw)
+        chunks = [
+            augment_chunk(job_id, i, frames, **kw)
+            for i, frames in enumerate(plan_chunks(job_id, **kw))
+        ]
+        finish_job(job_id, chunks, **kw)
         evaluate_job(job_id, **kw)
         archive = package_job(job_id, **kw)
         publish_job(job_id, archive, **kw)
@@ -757,7 +716,6 @@ def run_job_inline(job_id: str, *, settings: Settings | None = None) -> JobState
 __all__ = [
     "JobRun",
     "augment_chunk",
-    "augmentation_module",
     "cleanup_attempt",
     "evaluate_job",
     "fetch_sequence",

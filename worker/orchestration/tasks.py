@@ -5,7 +5,6 @@ sends (task id = job id); it starts an attempt and launches the job's stages as 
 workflow::
 
     fetch -> prepare -> chord(augment_chunk x N) -> finish -> evaluate -> package -> publish
-                        '------ when worker/augmentation/augment.py exists ------'
 
 A stage that stops the job (cancelled, failed, superseded by a newer attempt) raises
 ``Ignore``: the message is acknowledged and the rest of the workflow is not sent. The job
@@ -71,9 +70,9 @@ def workflow(app: Any, job_id: str, attempt: int, chunks: list[list[int]]) -> An
         return app.signature(name, args=args, immutable=immutable)
 
     stages = [step(TASK_FETCH, job_id, attempt), step(TASK_PREPARE, job_id, attempt)]
-    if chunks:  # the augmentation exists: frames in parallel, then finish
-        header = [step(TASK_AUGMENT_CHUNK, job_id, attempt, i, f) for i, f in enumerate(chunks)]
-        stages.append(chord(header, step(TASK_FINISH, job_id, attempt, immutable=False)))
+    # the frames in parallel (every job has at least one chunk), then finish
+    header = [step(TASK_AUGMENT_CHUNK, job_id, attempt, i, f) for i, f in enumerate(chunks)]
+    stages.append(chord(header, step(TASK_FINISH, job_id, attempt, immutable=False)))
     stages += [
         step(TASK_EVALUATE, job_id, attempt),
         step(TASK_PACKAGE, job_id, attempt),
@@ -88,8 +87,6 @@ def run_job(self: Task, job_id: str) -> None:
     attempt = _stage(runner.start_job, job_id)
     try:
         chunks = runner.plan_chunks(job_id, attempt=attempt)
-        if runner.augmentation_module() is None:
-            chunks = []
         workflow(self.app, job_id, attempt, chunks).apply_async()
     except Exception as exc:
         state.mark_failed(

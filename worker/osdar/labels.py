@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from jsonschema import Draft7Validator
 from numpy.typing import NDArray
 
 from geometry.transforms import openlabel_pose_to_T
@@ -330,7 +331,6 @@ def dump_labels(labels_raw: dict[str, Any], path: str | Path) -> Path:
 
 @lru_cache(maxsize=1)
 def _schema_validator(schema_path: str) -> Any:
-    from jsonschema import Draft7Validator
 
     schema = json.loads(Path(schema_path).read_text(encoding="utf-8"))
     return Draft7Validator(schema)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.interpolate import CubicSpline
+from scipy.spatial import cKDTree
 
 from geometry.columns import column_max, column_min
 
@@ -253,8 +254,6 @@ class Centreline:
         cache = self.__dict__.setdefault("_sample_cache", {})
         hit = cache.get(step)
         if hit is None:
-            from scipy.spatial import cKDTree
-
             ss = np.linspace(0.0, self.length, max(2, int(np.ceil(self.length / step)) + 1))
             pts = self.point(ss)
             hit = (ss, pts, cKDTree(pts[:, :2]))

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from geometry.voxels import voxel_keep
 from worker.osdar.sequence import Sequence
 
 log = logging.getLogger(__name__)
@@ -72,7 +73,6 @@ class FrameClouds:
         hit = self._cache.get(frame)
         if hit is not None:
             return hit
-        from worker.preparation.registration import voxel_keep
 
         # Sequence.pcd has dropped (and warned about) non-finite points already.
         cloud = self.seq.pcd(frame, allow_nonfinite=True)

@@ -28,6 +28,8 @@ import sys
 from typing import IO, Any
 
 import numpy as np
+from kiss_icp.config import KISSConfig
+from kiss_icp.kiss_icp import KissICP
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
@@ -115,7 +117,6 @@ class KissProcess:
 def kiss_config(settings: dict[str, Any]) -> Any:
     """A KISSConfig from the settings (keys deskew, max_range, min_range, voxel_size,
     max_num_threads: what the preparation sets, see ``odometry._kiss_settings``)."""
-    from kiss_icp.config import KISSConfig
 
     cfg = KISSConfig()
     cfg.data.deskew = bool(settings["deskew"])
@@ -128,7 +129,6 @@ def kiss_config(settings: dict[str, Any]) -> Any:
 
 def serve(settings: dict[str, Any], inp: IO[bytes], out: IO[bytes]) -> None:
     """The child's loop: register every frame read from ``inp``, answer on ``out``."""
-    from kiss_icp.kiss_icp import KissICP
 
     kiss = KissICP(kiss_config(settings))
     while True:

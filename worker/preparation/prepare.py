@@ -57,9 +57,12 @@ from worker.preparation.calibration_point import (
 )
 from worker.preparation.config import PrepareConfig
 from worker.preparation.frame_clouds import FrameClouds
+from worker.preparation.localization import odometry_track, run_strategy
 from worker.preparation.localization.anchor import anchored_to_ins
+from worker.preparation.localization.common import make_input
 from worker.preparation.registration import RegisteredCloud, dense_points, register_clouds
 from worker.preparation.scene_elements import find_scene_elements, reference_centreline
+from worker.preparation.tracks import find_tracks
 
 log = logging.getLogger(__name__)
 
@@ -185,9 +188,6 @@ def run_preparation(
     key: str = "",
 ) -> PreparedSequence:
     """Run the preparation recipe (module docstring) in memory; writes nothing."""
-    from worker.preparation.localization import odometry_track, run_strategy
-    from worker.preparation.localization.common import make_input
-    from worker.preparation.tracks import find_tracks
 
     config = config or PrepareConfig()
     tune_malloc()  # big arrays reuse freed pages (worker/orchestration/malloc_tuning.py)

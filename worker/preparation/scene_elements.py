@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import open3d as o3d
 from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial import cKDTree
@@ -308,7 +309,6 @@ def find_planes(
     xyz_world: F64, coords: TrackCoords, reference: Centreline, cfg: PlaneConfig, seed: int = 0
 ) -> tuple[list[Plane], list[str]]:
     """Near-horizontal planes per track segment (see the module docstring)."""
-    import open3d as o3d
 
     o3d.utility.random.seed(seed)
     rng = np.random.default_rng(seed)
@@ -425,7 +425,6 @@ def find_poles(
     ``view_xyz`` (n, 3): where each cloud point was seen from (the sensor position of its
     frame); it sets the direction of the half-cylinder bias (default: from the centreline).
     """
-    import open3d as o3d
 
     warnings: list[str] = []
     h0, h1 = cfg.height_band

@@ -18,6 +18,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import onnxruntime as ort
 from numpy.typing import NDArray
 
 log = logging.getLogger(__name__)
@@ -74,7 +75,6 @@ class SegmentationModel:
         rail_classes: Seq[str | int] = DEFAULT_RAIL_CLASSES,
         threads: int | None = None,
     ) -> None:
-        import onnxruntime as ort
 
         self.path = Path(path)
         if not self.path.is_file():

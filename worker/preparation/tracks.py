@@ -54,6 +54,7 @@ from worker.preparation.rails_geometric import (
     densify_polyline,
     rail_head_candidates,
 )
+from worker.preparation.rails_image import image_rail_candidates
 from worker.preparation.registration import RegisteredCloud
 from worker.robust_stats import mad_sigma
 
@@ -848,8 +849,6 @@ def find_tracks(
     if backend == "geometric":
         flags = rail_head_candidates(xyz[idx], ridge)
     else:
-        from worker.preparation.rails_image import image_rail_candidates
-
         if seq is None or "model" not in options:
             raise ValueError('the image backend needs seq and options["model"]')
         flags, img_metrics, img_warnings = image_rail_candidates(

@@ -23,7 +23,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import open3d as o3d
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from geometry.camera import CameraModel, load_cameras
 from geometry.poses import PoseTrack
@@ -32,7 +34,10 @@ from osdar_platform.shared_data import real_labels_path
 from worker.osdar.labels import frame_intervals
 from worker.osdar.pcd import PointCloud, header_for_fields
 from worker.osdar.writer import SequenceWriter
+from worker.synth.camera_sim import CameraSimulator
 from worker.synth.ins_sim import HAMBURG, InsErrorModel, simulate_ins
+from worker.synth.lidar_sim import LidarSimulator, default_sensors, sensors_to_json
+from worker.synth.scenes import build_scene
 
 log = logging.getLogger(__name__)
 
@@ -164,7 +169,6 @@ class Trajectory:
         pitch = np.deg2rad(0.03) * np.sin(2 * np.pi * 1.1 * dt + ph[2])
         roll = np.deg2rad(0.04) * np.sin(2 * np.pi * 0.9 * dt + ph[3])
         yaw = np.deg2rad(0.01) * np.sin(2 * np.pi * 0.5 * dt + ph[4])
-        from scipy.spatial.transform import Rotation
 
         R_body = Rotation.from_euler("xyz", np.stack([roll, pitch, yaw], 1)).as_matrix()
         T_body = np.tile(np.eye(4), (len(t), 1, 1))
@@ -251,7 +255,6 @@ class LandmarkVisibility:
     """Occlusion test of landmarks from a camera centre by ray casting the scene mesh."""
 
     def __init__(self, mesh: Any, origin: F64) -> None:
-        import open3d as o3d
 
         self.origin = origin
         scene = o3d.t.geometry.RaycastingScene()
@@ -261,7 +264,6 @@ class LandmarkVisibility:
 
     def visible(self, c_S: F64, p_S: F64) -> NDArray[np.bool_]:
         """Camera centre (3,) and points (n, 3) in the scene frame -> (n,) unoccluded."""
-        import open3d as o3d
 
         d = p_S - c_S
         dist = np.linalg.norm(d, axis=1)
@@ -288,9 +290,6 @@ def generate(
     Nothing half-written is ever visible: everything goes to ``out.partial`` and is renamed
     into place at the end.
     """
-    from worker.synth.camera_sim import CameraSimulator
-    from worker.synth.lidar_sim import LidarSimulator, default_sensors, sensors_to_json
-    from worker.synth.scenes import build_scene
 
     t_start = time.perf_counter()
     stages: dict[str, float] = {}

@@ -10,6 +10,7 @@ extraction). Every strategy is in its own module: ``ins``, ``odometry``, ``rails
 from __future__ import annotations
 
 from osdar_platform.catalog import STRATEGY_NAMES as STRATEGIES
+from worker.preparation.localization.auto import AutoStrategy
 from worker.preparation.localization.base import (
     Health,
     LocalizationInput,
@@ -17,7 +18,10 @@ from worker.preparation.localization.base import (
     Strategy,
 )
 from worker.preparation.localization.common import make_input
-from worker.preparation.localization.odometry import odometry_track
+from worker.preparation.localization.fused import FusedStrategy
+from worker.preparation.localization.ins import InsStrategy
+from worker.preparation.localization.odometry import OdometryStrategy, odometry_track
+from worker.preparation.localization.rails import RailsStrategy
 
 __all__ = [
     "STRATEGIES",
@@ -35,24 +39,14 @@ __all__ = [
 def get_strategy(name: str) -> Strategy:
     """The strategy called ``name`` (one of ``STRATEGIES``); ValueError otherwise."""
     if name == "ins":
-        from worker.preparation.localization.ins import InsStrategy
-
         return InsStrategy()
     if name == "odometry":
-        from worker.preparation.localization.odometry import OdometryStrategy
-
         return OdometryStrategy()
     if name == "rails":
-        from worker.preparation.localization.rails import RailsStrategy
-
         return RailsStrategy()
     if name == "fused":
-        from worker.preparation.localization.fused import FusedStrategy
-
         return FusedStrategy()
     if name == "auto":
-        from worker.preparation.localization.auto import AutoStrategy
-
         return AutoStrategy()
     raise ValueError(f"unknown localization strategy {name!r}; valid: {', '.join(STRATEGIES)}")
 

@@ -28,14 +28,32 @@ import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
+from worker.preparation.localization.base import (
+    Health,
+    LocalizationInput,
+    LocalizationResult,
+    Strategy,
+)
 from worker.preparation.localization.common import make_result, relative_motions
-from worker.preparation.localization.odometry import is_degenerate, odometry_run
+from worker.preparation.localization.fused import FusedStrategy
+from worker.preparation.localization.ins import InsStrategy
+from worker.preparation.localization.odometry import (
+    OdometryStrategy,
+    is_degenerate,
+    odometry_run,
+)
+from worker.preparation.localization.rails import RailsStrategy
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
 PREFERENCE = ("fused", "rails", "odometry", "ins")
+_CANDIDATES: dict[str, type[Strategy]] = {
+    "fused": FusedStrategy,
+    "rails": RailsStrategy,
+    "odometry": OdometryStrategy,
+    "ins": InsStrategy,
+}
 #: A more preferred candidate is kept if its crispness is within this factor of the best.
 TIE_TOLERANCE = 1.10
 #: Frame pairs (k - STRIDE, k) are checked as well as consecutive ones.
@@ -114,14 +132,13 @@ class AutoStrategy:
     name = "auto"
 
     def run(self, inp: LocalizationInput) -> LocalizationResult:
-        from worker.preparation.localization import get_strategy
 
         started = time.perf_counter()
         health = Health()
         results: dict[str, LocalizationResult] = {}
         for name in PREFERENCE:
             try:
-                results[name] = get_strategy(name).run(inp)
+                results[name] = _CANDIDATES[name]().run(inp)
             except Exception as exc:
                 health.warn(f"auto: candidate {name} failed ({exc})")
         if "ins" not in results:

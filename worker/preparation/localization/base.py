@@ -8,6 +8,7 @@ and says so in ``Health``.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -35,7 +36,6 @@ class Health:
         return not self.warnings and self.fallback is None
 
     def warn(self, message: str) -> None:
-        import logging
 
         logging.getLogger("worker.preparation.localization").warning(message)
         self.warnings.append(message)

@@ -74,7 +74,7 @@ from worker.preparation.localization.odometry import (
     odometry_run,
     odometry_track,
 )
-from worker.preparation.localization.rails import orientation_noise, rail_frames
+from worker.preparation.localization.rails import RailsStrategy, orientation_noise, rail_frames
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -857,7 +857,6 @@ class FusedStrategy:
     def _fallback(
         self, inp: LocalizationInput, health: Health, started: float, why: str
     ) -> LocalizationResult:
-        from worker.preparation.localization.rails import RailsStrategy
 
         fallback = RailsStrategy().run(inp)
         health.warn(f"fused: {why}; falling back to {fallback.health.fallback or 'rails'}")

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
+from scipy.spatial.transform import Rotation
 
 from worker.robust_stats import mad_sigma
 
@@ -203,7 +204,6 @@ def _least_squares(A: F64, b: F64) -> F64:
 
 
 def _small_rotation(roll: float, pitch: float) -> F64:
-    from scipy.spatial.transform import Rotation
 
     return Rotation.from_rotvec([roll, pitch, 0.0]).as_matrix()
 

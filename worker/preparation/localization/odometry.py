@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import open3d as o3d
+from kiss_icp.kiss_icp import KissICP
 from numpy.typing import NDArray
 
 from geometry.poses import PoseTrack
@@ -206,7 +207,6 @@ class _InProcess:
     """KISS-ICP in this process, with :class:`~.kiss_process.KissProcess`'s interface."""
 
     def __init__(self, cfg: Any) -> None:
-        from kiss_icp.kiss_icp import KissICP
 
         self.kiss = KissICP(cfg)
         self.out: tuple[F64, F64] = (np.eye(4), np.zeros((0, 3)))

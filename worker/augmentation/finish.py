@@ -1,0 +1,203 @@
+"""Finishing an augmentation: the chunks' files moved into the output sequence, every
+other input file linked byte-identically, the object added to the labels, the metrics
+written; all or nothing (:class:`~worker.osdar.writer.SequenceWriter`).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from worker.augmentation.annotations import (
+    add_object,
+)
+from worker.augmentation.frame import STAGE_KEYS, ChunkResult, FrameRecord
+from worker.augmentation.plan import Plan
+from worker.osdar.labels import load_labels
+from worker.osdar.writer import SequenceWriter
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+
+METRICS_FILE = "metrics.json"
+
+
+# ---------------------------------------------------------------------------- finishing
+def _stage_totals(chunks: list[ChunkResult]) -> dict[str, float]:
+    tot = dict.fromkeys(STAGE_KEYS, 0.0)
+    for ch in chunks:
+        for r in ch.frames:
+            for k, v in r.timings.items():
+                tot[k] = tot.get(k, 0.0) + v
+    return tot
+
+
+def _input_files(folder: Path) -> list[str]:
+    out = []
+    for root, dirs, files in os.walk(folder):
+        dirs.sort()
+        for name in sorted(files):
+            out.append((Path(root) / name).relative_to(folder).as_posix())
+    return out
+
+
+def finish_augmentation(
+    plan: Plan,
+    chunks: list[ChunkResult],
+    out_folder: str | Path,
+    *,
+    overwrite: bool = False,
+    evaluate: bool = True,
+    extra_timings: dict[str, float] | None = None,
+) -> dict[str, Any]:
+    """Assemble the output sequence (module docstring); returns the metrics.
+
+    Chunk files are moved (renamed) from their roots into the output; every other input
+    file (INS CSVs, other cameras, calibration.txt, ...) is linked byte-identically; the
+    labels get the object; ``metrics.json`` holds per-stage seconds, counts and, where
+    the sequence has ground truth, the object's errors (:mod:`.evaluate_object`).
+    """
+
+    t_finish = time.perf_counter()
+    out_folder = Path(out_folder)
+    seq_root = Path(plan.seq_folder)
+    records = sorted((r for ch in chunks for r in ch.frames), key=lambda r: r.frame_idx)
+    missing = sorted(set(plan.frames) - {r.frame_idx for r in records})
+    if missing:
+        raise ValueError(f"chunks miss frame(s) {missing[:10]}")
+    writer = SequenceWriter(out_folder, name=out_folder.name, overwrite=overwrite)
+    try:
+        tic = time.perf_counter()
+        done: set[str] = set()
+        for ch in chunks:
+            root = Path(ch.root)
+            for rel in ch.files:
+                dest = writer.root / rel
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(root / rel, dest)
+                done.add(rel)
+        labels_rel = plan.labels_name
+        n_linked = 0
+        for rel in _input_files(seq_root):
+            if rel in done or rel == labels_rel:
+                continue
+            writer.copy_unchanged(seq_root / rel, "/" + rel)
+            n_linked += 1
+        t_move = time.perf_counter() - tic
+
+        tic = time.perf_counter()
+        labels = copy.deepcopy(load_labels(seq_root / labels_rel).raw)
+        anns = [r.annotation for r in records if r.annotation is not None]
+        oid = None
+        if anns:
+            oid = add_object(labels, obj_class=plan.obj_class, frames=anns, seed=_object_seed(plan))
+        else:
+            plan.warnings.append("the object is visible in no frame: no annotation added")
+        t_labels = time.perf_counter() - tic
+
+        stages = _stage_totals(chunks)
+        metrics: dict[str, Any] = {
+            "sequence": seq_root.name,
+            "output": str(out_folder),
+            "object": {
+                "class": plan.obj_class,
+                "uuid": oid,
+                **plan.info,
+            },
+            "placement": jsonable(plan.placement),
+            "T_world_obj": plan.T_world_obj.tolist(),
+            "frames": {
+                "total": len(plan.all_frames),
+                "augmented_range": len(plan.frames),
+                "annotated": len(anns),
+            },
+            "cameras": _camera_counts(plan, records),
+            "lidar": _lidar_counts(plan, records),
+            "timings_s": {
+                **{f"plan_{k}": v for k, v in plan.timings.items()},
+                **{f"frames_{k}": v for k, v in stages.items()},
+                "frames_wall": sum(ch.seconds for ch in chunks),
+                "assemble": t_move,
+                "labels": t_labels,
+                "linked_files": n_linked,
+                **(extra_timings or {}),
+            },
+            "warnings": list(plan.warnings),
+        }
+        if evaluate and (seq_root / "ground_truth").is_dir():
+            from worker.evaluation.object_error import evaluate_object
+
+            tic = time.perf_counter()
+            try:
+                metrics["object_errors"] = evaluate_object(plan, records)
+            except (ValueError, OSError, KeyError) as exc:
+                log.warning("object evaluation failed: %s", exc)
+                metrics["object_errors"] = {"error": str(exc)}
+            metrics["timings_s"]["evaluate"] = time.perf_counter() - tic
+        if plan.spec.clicks is not None or plan.info.get("calibration"):
+            metrics["calibration"] = plan.info.get("calibration")
+        metrics["timings_s"]["finish"] = time.perf_counter() - t_finish
+        writer.write_bytes("/" + METRICS_FILE, json.dumps(jsonable(metrics), indent=1).encode())
+        writer.finish(labels)
+    except BaseException:
+        writer.abort()
+        raise
+    return metrics
+
+
+def _object_seed(plan: Plan) -> str:
+    return f"osdar-ar/{Path(plan.seq_folder).name}/{plan.obj_class}/" + ",".join(
+        f"{v:.3f}" for v in plan.T_world_obj[:3, 3]
+    )
+
+
+def _camera_counts(plan: Plan, records: list[FrameRecord]) -> dict[str, Any]:
+    out = {}
+    for c in plan.cameras:
+        recs = [r.cameras[c] for r in records if c in r.cameras]
+        out[c] = {
+            "visible_frames": sum(x.visible for x in recs),
+            "augmented_files": sum(x.augmented for x in recs),
+            "linked_files": sum(not x.augmented for x in recs),
+        }
+    return out
+
+
+def _lidar_counts(plan: Plan, records: list[FrameRecord]) -> dict[str, Any] | None:
+    if plan.lidar_stream is None:
+        return None
+    pts = [r.lidar_points for r in records]
+    return {
+        "origins": plan.spec.lidar_origins,
+        "frames_with_points": int(sum(p > 0 for p in pts)),
+        "object_points_total": int(sum(pts)),
+        "object_points_max": int(max(pts, default=0)),
+        "candidate_rays_total": int(sum(r.lidar_candidates for r in records)),
+    }
+
+
+def jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(float(obj)) else None
+    return obj

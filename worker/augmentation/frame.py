@@ -1,0 +1,475 @@
+"""One frame of an augmentation (the recipe of :mod:`worker.augmentation.augment`).
+
+Per camera: pose at its timestamp -> render -> (not visible: link the file) -> decode
+-> composite (ROI only) -> encode -> write. Lidar: pose at the lidar timestamp -> read ->
+cast rays near the object -> (no hit: link the file) -> write (the input's DATA type).
+Annotation: cuboid in the lidar frame, bbox + poly2d per camera, lidar indices.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import shutil
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from geometry.camera import CameraModel
+from geometry.transforms import invert_T, transform_points
+from renderer.composite import composite
+from renderer.lidar_cast import cast_object, point_origins
+from renderer.mesh import ObjectMesh
+from renderer.object_render import ObjectRenderer
+from worker.augmentation.annotations import (
+    CameraView,
+    FrameAnnotation,
+    cuboid_in_lidar,
+    mask_outline,
+)
+from worker.augmentation.plan import NEAR_PLANE_M, Plan
+from worker.osdar.errors import atomic_write_bytes
+from worker.osdar.images import read_png, write_png
+from worker.osdar.pcd import PointCloud, read_pcd, write_pcd
+from worker.osdar.sequence import uri_to_path
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+# One renderer per camera and antialiasing mode in each process.
+_RENDERERS: dict[tuple, Any] = {}
+
+
+# A frame's lidar cast only sees points whose ray passes within the object's bounding
+# sphere grown by this (m): the rest are never handed to the ray caster.
+LIDAR_SPHERE_MARGIN_M = 0.05
+
+
+# Exposure of the front cameras (s, composite's default) and the motion blur cap (px).
+EXPOSURE_S = 0.005
+
+
+MAX_MOTION_BLUR_PX = 32.0
+
+
+# Composite window around the ROI (px): wider than composite's LAB ring (<= 48 px).
+COMPOSITE_MARGIN_PX = 64
+
+
+@dataclass
+class CameraRecord:
+    """One camera in one frame: what the render said (full-image pixels).
+
+    mask : (u0, v0, u1, v1) and the packed bits (np.packbits) of alpha > 0.5 in it, for
+    the evaluation; None where nothing of the object is visible.
+    """
+
+    visible: bool
+    anchor_uv: tuple[float, float]
+    distance_m: float
+    bbox: tuple[float, float, float, float] | None = None  # u0, v0, u1, v1 pixel edges
+    visible_fraction: float = 0.0
+    augmented: bool = False
+    mask_roi: tuple[int, int, int, int] | None = None
+    mask_bits: bytes | None = None
+
+    def mask(self, shape: tuple[int, int]) -> NDArray[np.bool_]:
+        """The visible mask (alpha > 0.5) as a full (H, W) bool image."""
+        out = np.zeros(shape, dtype=bool)
+        if self.mask_roi is None or self.mask_bits is None:
+            return out
+        u0, v0, u1, v1 = self.mask_roi
+        n = (v1 - v0) * (u1 - u0)
+        bits = np.unpackbits(np.frombuffer(self.mask_bits, np.uint8), count=n)
+        out[v0:v1, u0:u1] = bits.reshape(v1 - v0, u1 - u0).astype(bool)
+        return out
+
+
+@dataclass
+class FrameRecord:
+    """One frame's result: its annotation (None: the object is nowhere), per-camera
+    records, lidar counts and per-stage seconds."""
+
+    frame_idx: int
+    annotation: FrameAnnotation | None
+    cameras: dict[str, CameraRecord]
+    lidar_points: int = 0
+    lidar_candidates: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class ChunkResult:
+    """What :func:`augment_frames` wrote under ``root`` (relative paths) and found."""
+
+    root: str
+    files: list[str]
+    frames: list[FrameRecord]
+    seconds: float = 0.0
+
+
+def camera_renderer(cam: CameraModel, antialias: str) -> Any:
+    """The process's ObjectRenderer of a camera (one GL context per process)."""
+
+    key = (cam.name, cam.width, cam.height, cam.K.tobytes(), cam.dist.tobytes(), antialias)
+    r = _RENDERERS.get(key)
+    if r is None:
+        r = _RENDERERS[key] = ObjectRenderer(cam, antialias=antialias)
+    return r
+
+
+def _link(src: Path, dest: Path) -> None:
+    """``dest`` byte-identical to ``src``: hard link, else copy."""
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    dest.unlink(missing_ok=True)
+    try:
+        os.link(src, dest)
+    except OSError:
+        shutil.copyfile(src, dest)
+
+
+def _shift_view(view: CameraView, d: tuple[float, float]) -> CameraView:
+    if d == (0.0, 0.0):
+        return view
+    bb = (view.bbox[0] + d[0], view.bbox[1] + d[1], view.bbox[2], view.bbox[3])
+    out = [v + d[i % 2] for i, v in enumerate(view.outline)]
+    return CameraView(bb, out, view.visible_fraction, view.truncated)
+
+
+def _truncated(cam: CameraModel, obj: ObjectMesh, T_world_obj: F64, T_world_base: F64) -> bool:
+    """Whether part of the (unoccluded) object falls outside the image or the lens model."""
+    p = transform_points(T_world_obj, obj.vertices)
+    uv, ok = cam.project_world(p, T_world_base)
+    return bool(not np.all(ok) or not np.all(cam.in_image(uv[ok])))
+
+
+def composite_file(
+    src: Path,
+    dest: Path,
+    render: Any,
+    options: dict[str, Any],
+    compression: int,
+    t: dict[str, float],
+) -> bool:
+    """Decode ``src``, composite ``render`` into its ROI, encode once to ``dest`` (or link
+    ``src`` when no pixel changes); returns whether pixels changed.
+
+    The PNG is decoded straight into OpenCV's BGR order and encoded from it: only a
+    window around the ROI (``COMPOSITE_MARGIN_PX`` wider than the LAB-matching ring, so
+    the result equals a full-frame composite) is converted to RGB and composited. Images
+    that are not 8-bit 3-channel take the general :func:`read_png` path.
+    """
+
+    tic = time.perf_counter()
+    img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+    t["decode"] += time.perf_counter() - tic
+    if img is None or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        tic = time.perf_counter()
+        rgb = read_png(src)
+        out = composite(rgb, render, **options)
+        changed = out is not rgb and not np.array_equal(out, rgb)
+        t["composite"] += time.perf_counter() - tic
+        tic = time.perf_counter()
+        if changed:
+            write_png(dest, out, compression=compression)
+        else:
+            _link(src, dest)
+        t["encode"] += time.perf_counter() - tic
+        return changed
+    tic = time.perf_counter()
+    u0, v0, u1, v1 = render.roi
+    H, W = img.shape[:2]
+    m = COMPOSITE_MARGIN_PX
+    a0, b0, a1, b1 = max(u0 - m, 0), max(v0 - m, 0), min(u1 + m, W), min(v1 + m, H)
+    sub = np.ascontiguousarray(img[b0:b1, a0:a1, ::-1])
+    shifted = dataclasses.replace(render, roi=(u0 - a0, v0 - b0, u1 - a0, v1 - b0))
+    out = composite(sub, shifted, **options)
+    changed = out is not sub and not np.array_equal(out, sub)
+    if changed:
+        img[b0:b1, a0:a1] = out[..., ::-1]
+    t["composite"] += time.perf_counter() - tic
+    tic = time.perf_counter()
+    if changed:
+        ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])
+        if not ok:
+            raise ValueError(f"{dest}: OpenCV failed to encode the PNG")
+        atomic_write_bytes(dest, buf.tobytes())
+        t["encode"] += time.perf_counter() - tic
+    else:
+        _link(src, dest)
+        t["copy"] += time.perf_counter() - tic
+    return changed
+
+
+def _bounded_motion(render: Any, speed_mps: float) -> Any:
+    """The render with its image motion per metre limited so that the motion blur stays
+    under ``MAX_MOTION_BLUR_PX``: the renderer's finite difference is a linearisation that
+    explodes for an anchor at or behind the camera plane (an object passing the camera)."""
+    m = np.asarray(render.motion_uv_per_m, dtype=np.float64)
+    blur = float(np.linalg.norm(m)) * abs(speed_mps) * EXPOSURE_S
+    if np.all(np.isfinite(m)) and blur <= MAX_MOTION_BLUR_PX:
+        return render
+    if not np.all(np.isfinite(m)) or blur == 0.0:
+        return dataclasses.replace(render, motion_uv_per_m=np.zeros(2))
+    return dataclasses.replace(render, motion_uv_per_m=m * (MAX_MOTION_BLUR_PX / blur))
+
+
+def _camera_frame(
+    plan: Plan, frame: int, name: str, src: Path, dest: Path, t: dict[str, float]
+) -> tuple[CameraRecord, CameraView | None, bool]:
+    """pose -> render -> composite -> write for one camera; returns (record, view,
+    whether a file was written)."""
+    cam, r = plan.cameras[name], plan.spec.render
+    T_world_base = plan.T_world_base[name][frame]
+    tic = time.perf_counter()
+    render = camera_renderer(cam, r.antialias).render(
+        plan.obj_render, plan.T_world_obj, T_world_base, plan.proxies, plan.lights[name],
+        near=NEAR_PLANE_M,
+    )  # fmt: skip
+    t["render"] += time.perf_counter() - tic
+    anchor = (float(render.anchor_uv[0]), float(render.anchor_uv[1]))
+    rec = CameraRecord(False, anchor, float(render.distance_m))
+    if render.roi is None:
+        tic = time.perf_counter()
+        _link(src, dest)
+        t["copy"] += time.perf_counter() - tic
+        return rec, None, False
+    render = _bounded_motion(render, plan.speed_mps.get(frame, 0.0))
+    offset = plan.pixel_offsets.get(name, (0.0, 0.0))
+    options = {
+        "speed_mps": plan.speed_mps.get(frame, 0.0),
+        "exposure_s": EXPOSURE_S,
+        "lab_match": r.lab_match,
+        "blur": r.blur,
+        "shadow_strength": r.shadow_strength,
+        "pixel_offset": offset,
+    }
+    changed = composite_file(src, dest, render, options, r.png_compression, t)
+    view = None
+    visible = (
+        render.alpha.size > 0
+        and bool(np.any(render.alpha > 0))
+        and np.all(np.isfinite(render.bbox))
+    )
+    if visible:
+        tic = time.perf_counter()
+        u0, v0, u1, v1 = render.bbox
+        outline = mask_outline(render.alpha, (render.roi[0], render.roi[1]))
+        trunc = _truncated(cam, plan.obj_render, plan.T_world_obj, T_world_base)
+        view = _shift_view(
+            CameraView(
+                ((u0 + u1) / 2, (v0 + v1) / 2, u1 - u0, v1 - v0),
+                outline,
+                float(render.visible_fraction),
+                trunc,
+            ),
+            offset,
+        )
+        m = render.alpha > 0.5
+        rec = CameraRecord(
+            True,
+            (anchor[0] + offset[0], anchor[1] + offset[1]),
+            rec.distance_m,
+            (u0 + offset[0], v0 + offset[1], u1 + offset[0], v1 + offset[1]),
+            float(render.visible_fraction),
+            changed,
+            tuple(int(v) for v in render.roi),  # type: ignore[arg-type]
+            np.packbits(m.ravel()).tobytes(),
+        )
+        t["annotate"] += time.perf_counter() - tic
+    else:
+        rec.augmented = changed
+    return rec, view, changed
+
+
+def lidar_candidates(
+    xyz: NDArray, origins: NDArray, centre: F64, radius: float
+) -> NDArray[np.int64]:
+    """Indices of points whose segment origin -> point passes within ``radius`` of
+    ``centre`` (base frame): the only rays that can meet the object.
+
+    xyz : (n, 3) points; origins : (n, 3) or (3,) ray origins; centre : (3,).
+    A cheap float32 cone test first (angle from the origin to the sphere), then the
+    exact float64 segment-sphere distance on the survivors.
+    """
+    o = np.broadcast_to(np.asarray(origins, dtype=np.float64), xyz.shape)
+    c = np.asarray(centre, dtype=np.float64)
+    d32 = xyz.astype(np.float32) - o.astype(np.float32)
+    oc = (c - o).astype(np.float32)
+    # Cone: the point's direction within asin(r / |oc|) of the centre's (or the origin
+    # is inside the sphere); done as dot >= |d| * sqrt(|oc|^2 - r^2) with a little slack.
+    dot = np.einsum("ij,ij->i", d32, oc)
+    dn = np.sqrt(np.einsum("ij,ij->i", d32, d32))
+    oc2 = np.einsum("ij,ij->i", oc, oc)
+    inside = oc2 <= radius * radius
+    cos_lim = np.sqrt(np.maximum(oc2 - radius * radius, 0.0))
+    keep = np.flatnonzero(inside | ((dot > 0) & (dot >= dn * cos_lim * (1 - 1e-4) - 1e-3)))
+    if len(keep) == 0:
+        return keep.astype(np.int64)
+    seg = xyz[keep].astype(np.float64) - o[keep]
+    L2 = np.einsum("ij,ij->i", seg, seg)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tt = np.clip(np.einsum("ij,ij->i", c - o[keep], seg) / L2, 0.0, 1.0)
+    dist = np.linalg.norm(o[keep] + tt[:, None] * seg - c, axis=1)
+    return keep[np.isfinite(dist) & (dist <= radius)].astype(np.int64)
+
+
+def _intensity_scale(fields: dict[str, NDArray]) -> dict[int, float] | float:
+    """Full-scale intensity per sensor_index: the largest intensity of that sensor in the
+    frame (OSDaR23's intensities are sensor-specific: 0-255 for some, 0-1 for others)."""
+    if "intensity" not in fields:
+        return 1.0
+    inten = np.asarray(fields["intensity"], dtype=np.float64)
+    if "sensor_index" not in fields:
+        return float(np.nanmax(inten)) if len(inten) else 1.0
+    sidx = np.asarray(fields["sensor_index"]).astype(np.int64)
+    out = {}
+    for k in np.unique(sidx):
+        v = inten[sidx == k]
+        v = v[np.isfinite(v)]
+        out[int(k)] = float(v.max()) if len(v) and v.max() > 0 else 1.0
+    return out
+
+
+def cast_frame_lidar(
+    fields: dict[str, NDArray], mesh: ObjectMesh, T_base_obj: F64, origins: dict | F64
+) -> tuple[dict[str, NDArray] | None, NDArray[np.int64], int]:
+    """The object cast into one cloud, only over the points near it.
+
+    Returns (new fields or None when no point moved, sorted object point indices,
+    number of candidate rays).
+    """
+
+    b = mesh.bounds
+    centre_obj = 0.5 * (b[0] + b[1])
+    centre = transform_points(T_base_obj, centre_obj[None])[0]
+    radius = 0.5 * float(np.linalg.norm(b[1] - b[0])) + LIDAR_SPHERE_MARGIN_M
+    xyz = np.stack([np.asarray(fields[k]) for k in "xyz"], axis=1)
+    if isinstance(origins, dict):
+        o = point_origins(fields, origins)
+    else:
+        o = np.asarray(origins, dtype=np.float64)
+    cand = lidar_candidates(xyz, o, centre, radius)
+    if len(cand) == 0:
+        return None, cand, 0
+    sub = {k: np.asarray(v)[cand] for k, v in fields.items()}
+    res = cast_object(sub, mesh, T_base_obj, origins, intensity_scale=_intensity_scale_for(
+        fields, sub))  # fmt: skip
+    if res.moved == 0:
+        return None, np.zeros(0, np.int64), len(cand)
+    out = dict(fields)
+    idx = cand[res.object_indices]
+    for k in fields:
+        col = np.array(fields[k], copy=True)
+        col[idx] = res.fields[k][res.object_indices]
+        out[k] = col
+    return out, np.sort(idx), len(cand)
+
+
+def _intensity_scale_for(full: dict[str, NDArray], sub: dict[str, NDArray]) -> Any:
+    s = _intensity_scale(full)
+    if isinstance(s, dict) and "sensor_index" in sub:
+        present = {int(k) for k in np.unique(np.asarray(sub["sensor_index"]))}
+        return {k: v for k, v in s.items() if k in present}
+    return s
+
+
+def _lidar_frame(
+    plan: Plan, frame: int, src: Path, dest: Path, t: dict[str, float]
+) -> tuple[list[int] | None, int, bool]:
+    """read -> cast -> write for one cloud; returns (object indices, candidates, written)."""
+
+    assert plan.lidar_origins is not None
+    tic = time.perf_counter()
+    cloud = read_pcd(src)
+    t["lidar_read"] += time.perf_counter() - tic
+    tic = time.perf_counter()
+    T_base_obj = invert_T(plan.T_world_base[plan.lidar_stream][frame]) @ plan.T_world_obj
+    new, idx, n_cand = cast_frame_lidar(cloud.fields, plan.obj_full, T_base_obj, plan.lidar_origins)
+    t["lidar_cast"] += time.perf_counter() - tic
+    tic = time.perf_counter()
+    if new is None:
+        _link(src, dest)
+        t["copy"] += time.perf_counter() - tic
+        return None, n_cand, False
+    write_pcd(dest, PointCloud(fields=new, header=cloud.header))
+    t["lidar_write"] += time.perf_counter() - tic
+    return [int(i) for i in idx], n_cand, True
+
+
+STAGE_KEYS = (
+    "render",
+    "decode",
+    "composite",
+    "encode",
+    "annotate",
+    "copy",
+    "lidar_read",
+    "lidar_cast",
+    "lidar_write",
+)
+
+
+def augment_frame(plan: Plan, frame: int, out_root: Path) -> tuple[FrameRecord, list[str]]:
+    """One frame (module docstring's recipe); files go under ``out_root`` at their uris."""
+
+    t = dict.fromkeys(STAGE_KEYS, 0.0)
+    seq_root = Path(plan.seq_folder)
+    uris = plan.uris[frame]
+    written: list[str] = []
+    views: dict[str, CameraView] = {}
+    records: dict[str, CameraRecord] = {}
+    for name in plan.cameras:
+        if name not in uris:
+            continue
+        uri = uris[name]
+        rec, view, _ = _camera_frame(
+            plan, frame, name, uri_to_path(seq_root, uri), uri_to_path(out_root, uri), t
+        )
+        written.append(uri.lstrip("/"))
+        records[name] = rec
+        if view is not None:
+            views[name] = view
+    lidar_idx, n_cand = None, 0
+    if plan.lidar_stream is not None and plan.lidar_stream in uris:
+        uri = uris[plan.lidar_stream]
+        lidar_idx, n_cand, _ = _lidar_frame(
+            plan, frame, uri_to_path(seq_root, uri), uri_to_path(out_root, uri), t
+        )
+        written.append(uri.lstrip("/"))
+    ann = None
+    if views or lidar_idx:
+        T_lidar = plan.T_world_base.get(plan.lidar_stream or "", {}).get(frame)
+        if T_lidar is None:  # no lidar stream: the first camera's pose
+            T_lidar = next(plan.T_world_base[c][frame] for c in plan.cameras)
+        ann = FrameAnnotation(
+            frame,
+            cuboid_in_lidar(plan.obj_full, plan.T_world_obj, T_lidar),
+            views,
+            lidar_idx if plan.lidar_stream is not None else None,
+        )
+        if ann.lidar_indices is None and plan.lidar_stream is not None:
+            ann.lidar_indices = []
+    rec = FrameRecord(frame, ann, records, len(lidar_idx or []), n_cand, t)
+    return rec, written
+
+
+def augment_frames(plan: Plan, frames: Iterable[int], out_root: str | Path) -> ChunkResult:
+    """Augment a chunk of frames: writes their augmented or linked camera and lidar files
+    under ``out_root`` (same relative paths as the input); returns the records."""
+    tic = time.perf_counter()
+    out_root = Path(out_root)
+    records, files = [], []
+    for f in frames:
+        rec, written = augment_frame(plan, int(f), out_root)
+        records.append(rec)
+        files += written
+    return ChunkResult(str(out_root), files, records, time.perf_counter() - tic)

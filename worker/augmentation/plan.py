@@ -1,0 +1,331 @@
+"""Planning an augmentation: everything frame-independent, done once per job.
+
+The object mesh and its level of detail, the placement, the proxies, the lighting per
+camera and the vehicle pose at every sensor timestamp, collected in a :class:`Plan`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from geometry.camera import CameraModel, load_cameras
+from renderer.assets import MeshError, build_obstacle, choose_detail, load_user_mesh, simplify
+from renderer.assets.lod import FACES_PER_PX
+from renderer.lidar_cast import origins_from_json
+from renderer.lighting import Lighting, estimate_lighting, sun_dir_enu
+from renderer.mesh import ObjectMesh, ProxyMesh
+from worker.augmentation.placement import (
+    RAIL_HEIGHT_ABOVE_BED,
+    ResolvedPlacement,
+    resolve_placement,
+)
+from worker.augmentation.proxies import build_proxies
+from worker.augmentation.spec import AugmentSpec
+from worker.osdar.sequence import Sequence
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+#: Near plane of the cameras' renders (m): nearer geometry is clipped.
+NEAR_PLANE_M = 0.05
+
+
+class AugmentError(ValueError):
+    """A spec the sequence cannot honour (unknown object, camera missing, placement...)."""
+
+
+# ---------------------------------------------------------------------------- the plan
+@dataclass
+class Plan:
+    """Everything frame-independent of one augmentation (picklable).
+
+    frames : the frame indices to augment (the spec's range); all_frames : every frame.
+    uris : frame -> stream -> uri (relative to the sequence folder).
+    T_world_base : stream -> frame -> (4, 4) vehicle pose at that stream's timestamp.
+    T_world_obj : (4, 4) the object's pose; obj_full / obj_render : the mesh (lidar,
+    cuboid) and its level of detail for the cameras; proxies : world frame.
+    lights, pixel_offsets : per camera; speed_mps : frame -> vehicle speed.
+    lidar_origins : {sensor_index: (3,)} or (3,) base-frame ray origins, None: no lidar.
+    """
+
+    seq_folder: str
+    spec: AugmentSpec
+    frames: list[int]
+    all_frames: list[int]
+    cameras: dict[str, CameraModel]
+    lidar_stream: str | None
+    uris: dict[int, dict[str, str]]
+    T_world_base: dict[str, dict[int, F64]]
+    T_world_obj: F64
+    placement: dict[str, Any]
+    obj_full: ObjectMesh
+    obj_render: ObjectMesh
+    obj_class: str
+    proxies: ProxyMesh
+    lights: dict[str, Lighting]
+    pixel_offsets: dict[str, tuple[float, float]]
+    speed_mps: dict[int, float]
+    lidar_origins: dict[int, F64] | F64 | None
+    labels_name: str
+    timings: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------- planning
+def sequence(seq_folder: str | Path) -> Any:
+
+    return Sequence.open(seq_folder)
+
+
+def _frame_times(seq: Any, stream: str) -> dict[int, float]:
+    ts = seq.timestamps(stream)
+    return {int(f): float(t) for f, t in zip(seq.frame_indices, ts, strict=True) if np.isfinite(t)}
+
+
+def load_object(spec: AugmentSpec) -> ObjectMesh:
+    """The spec's object mesh at full detail. Raises AugmentError (unknown name, bad
+    mesh file)."""
+
+    o = spec.object
+    try:
+        if o.builtin is not None:
+            mesh = build_obstacle(o.builtin, seed=o.seed, detail=o.detail, scale=o.scale)
+        else:
+            if o.mesh_path is not None:
+                path = Path(o.mesh_path)
+                if not path.is_file():
+                    raise AugmentError(f"mesh file {path} not found")
+                data, ftype = path.read_bytes(), o.file_type or path.suffix.lstrip(".")
+            else:
+                data, ftype = o.mesh_bytes or b"", o.file_type or ""
+            mesh = load_user_mesh(data, ftype, scale=o.mesh_scale, up=o.up, name=o.class_name)
+            if o.scale != 1.0:
+                mesh.vertices = mesh.vertices * o.scale
+    except (MeshError, ValueError) as exc:
+        if isinstance(exc, AugmentError):
+            raise
+        raise AugmentError(f"object: {exc}") from exc
+    mesh.name = o.class_name
+    return mesh
+
+
+def _lidar_origins(spec: AugmentSpec) -> dict[int, F64] | F64:
+
+    v = spec.origins_value()
+    if v == "single":
+        return np.zeros(3)
+    if isinstance(v, tuple):
+        return np.asarray(v, dtype=np.float64)
+    path = Path(v)
+    try:
+        return origins_from_json(json.loads(path.read_text()))
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise AugmentError(f"lidar origins {path}: {exc}") from exc
+
+
+def _projected_height_px(
+    cams: dict[str, CameraModel], poses: dict[str, dict[int, F64]], p_world: F64, height: float
+) -> float:
+    """Largest image height (px) of an object ``height`` m tall at ``p_world`` (3,) over
+    all frames and cameras where it is in front (the level-of-detail driver)."""
+    best = 0.0
+    for name, cam in cams.items():
+        T = np.stack(list(poses[name].values()))
+        c = (T @ cam.T_base_opt)[:, :3, 3]
+        z_axis = (T @ cam.T_base_opt)[:, :3, 2]
+        depth = np.einsum("ij,ij->i", p_world[None] - c, z_axis)
+        front = depth > NEAR_PLANE_M
+        if np.any(front):
+            best = max(best, float(cam.fx * height / max(depth[front].min(), 0.5)))
+    return best
+
+
+def _pixel_offsets(prepared: Any, cams: dict[str, CameraModel]) -> dict[str, tuple[float, float]]:
+    """Mean (click - projection) of the calibration point per camera, at image scale."""
+    out = {c: (0.0, 0.0) for c in cams}
+    cal = getattr(prepared, "calibration", None)
+    if cal is None or cal.mode != "clicks":
+        return out
+    for name, cam in cams.items():
+        d = [
+            np.subtract(o["click"], o["projected"])
+            for o in cal.observations
+            if o.get("camera") == name and o.get("inlier") and o.get("projected") is not None
+        ]
+        if d:
+            res = cal.resolution.get(name)
+            s = cam.width / res[0] if res else cam.scale
+            m = np.mean(d, axis=0) * s
+            out[name] = (float(m[0]), float(m[1]))
+    return out
+
+
+def _speeds(track: Any, times: dict[int, float]) -> dict[int, float]:
+    """Vehicle speed (m/s) per frame from the pose track (central difference, 50 ms)."""
+    out = {}
+    for f, t in times.items():
+        try:
+            T = track.interpolate(np.array([t - 0.05, t + 0.05]), max_extrapolation_s=0.2)
+        except ValueError:
+            out[f] = 0.0
+            continue
+        out[f] = float(np.linalg.norm(T[1, :3, 3] - T[0, :3, 3]) / 0.1)
+    return out
+
+
+def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) -> Plan:
+    """Everything frame-independent (module docstring). Raises AugmentError /
+    PlacementError with a message saying what and where."""
+
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
+    tic = time.perf_counter()
+    seq = sequence(seq_folder)
+    try:
+        cam_names = spec.camera_names(seq.cameras)
+        cams = load_cameras(seq.labels.raw, cam_names)
+    except ValueError as exc:
+        raise AugmentError(f"{seq.folder}: {exc}") from exc
+    lidar_stream = seq.lidar_stream if spec.lidar else None
+    if spec.lidar and lidar_stream is None:
+        warnings.append("the sequence has no lidar files: lidar not augmented")
+    all_frames = seq.frame_indices
+    frames = all_frames
+    if spec.frame_range is not None:
+        a, b = spec.frame_range
+        frames = [f for f in all_frames if a <= f <= b]
+        if not frames:
+            raise AugmentError(
+                f"frame_range [{a}, {b}] holds no frame of the sequence "
+                f"({all_frames[0]}..{all_frames[-1]})"
+            )
+    uris = {fr.index: {name: fs.uri for name, fs in fr.streams.items()} for fr in seq.labels.frames}
+    track = prepared.track
+    lidar_times = _frame_times(seq, seq.lidar_stream) if seq.lidar_stream else {}
+    if not lidar_times:  # no lidar: the first camera's clock numbers the frames
+        lidar_times = _frame_times(seq, cam_names[0])
+    streams = {c: _frame_times(seq, c) for c in cam_names}
+    if lidar_stream is not None:
+        streams[lidar_stream] = lidar_times
+    try:
+        poses = {
+            s: dict(zip(ft, track.interpolate(np.array(list(ft.values()))), strict=True))
+            for s, ft in streams.items()
+        }
+    except ValueError as exc:
+        raise AugmentError(f"the prepared poses do not cover the frames: {exc}") from exc
+    timings["open"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    obj = load_object(spec)
+    timings["object"] = time.perf_counter() - tic
+
+    # Placement: nominal point -> proxies around it -> snapped onto them, poles checked.
+    tic = time.perf_counter()
+    ego = prepared.ego
+    kw = {"ego": ego, "track": track, "frame_times": lidar_times, "poles": [], "obj": obj}
+    nominal = resolve_placement(spec.placement.to_spec(), proxies=None, **kw)
+    cam_xyz = np.concatenate(
+        [
+            np.stack([(T @ cams[c].T_base_opt)[:3, 3] for f, T in poses[c].items() if f in frames])
+            for c in cam_names
+        ]
+    )
+    p0 = nominal.T_world_obj[:3, 3]
+    ground_z = p0[2] - (0.0 if nominal.surface == "nominal" and abs(spec.placement.offset) < 1
+                        else RAIL_HEIGHT_ABOVE_BED)  # fmt: skip
+    proxies = build_proxies(prepared, p0, cam_xyz, ground_z=ground_z)
+    kw["poles"] = list(prepared.poles)
+    placed: ResolvedPlacement = resolve_placement(spec.placement.to_spec(), proxies=proxies, **kw)
+    T_world_obj = placed.T_world_obj
+    timings["placement"] = time.perf_counter() - tic
+
+    # Level of detail from the largest projected height over the sequence.
+    tic = time.perf_counter()
+    h_px = _projected_height_px(
+        cams, {c: {f: poses[c][f] for f in frames if f in poses[c]} for c in cam_names},
+        T_world_obj[:3, 3] + np.array([0.0, 0.0, 0.5 * obj.size[2]]), float(obj.size[2]),
+    )  # fmt: skip
+    budget = choose_detail(h_px, float(obj.meta.get("lod_faces_per_px", FACES_PER_PX)))
+    obj_render = simplify(obj, budget) if budget < len(obj.faces) else obj
+    timings["lod"] = time.perf_counter() - tic
+
+    # Lighting per camera from its first frame of the range.
+    tic = time.perf_counter()
+    sun = None
+    if spec.render.sun == "ephemeris":
+        w = prepared.world
+        sun = sun_dir_enu(w.latitude_deg, w.longitude_deg, lidar_times[frames[0]])
+        if sun[2] < 0.02:
+            warnings.append("the sun is below the horizon at the sequence's time: no shadow")
+    lights = {}
+    for c in cam_names:
+        f0 = next(f for f in frames if f in poses[c])
+        img = seq.image(f0, c)
+        if img.ndim == 2:
+            raise AugmentError(f"camera {c} has grey images: only colour cameras are augmented")
+        lights[c] = estimate_lighting(img, cams[c], poses[c][f0], sun_dir_world=sun)
+    timings["lighting"] = time.perf_counter() - tic
+
+    offsets = _pixel_offsets(prepared, cams) if spec.render.pixel_offset else {}
+    if spec.render.pixel_offset and not any(any(v) for v in offsets.values()):
+        warnings.append("pixel_offset asked but the preparation has no clicked calibration")
+    if spec.render.scale != 1.0:
+        warnings.append(
+            f"render.scale {spec.render.scale} ignored: the output keeps the input resolution"
+        )
+    origins = _lidar_origins(spec) if lidar_stream is not None else None
+    labels_name = seq.labels_path.name
+    log.info(
+        "plan: %s at %s (%s), %d/%d faces (%.0f px high at most), %d proxy faces",
+        obj.name, np.round(T_world_obj[:3, 3], 2).tolist(), placed.surface,
+        len(obj_render.faces), len(obj.faces), h_px, len(proxies.faces),
+    )  # fmt: skip
+    return Plan(
+        seq_folder=str(Path(seq_folder)),
+        spec=spec,
+        frames=frames,
+        all_frames=all_frames,
+        cameras=cams,
+        lidar_stream=lidar_stream,
+        uris=uris,
+        T_world_base=poses,
+        T_world_obj=T_world_obj,
+        placement={
+            "surface": placed.surface,
+            "s": placed.s,
+            "lateral": placed.lateral,
+            **placed.info,
+            "spec": spec.placement.model_dump(mode="json"),
+        },
+        obj_full=obj,
+        obj_render=obj_render,
+        obj_class=spec.object.class_name,
+        proxies=proxies,
+        lights=lights,
+        pixel_offsets=offsets,
+        speed_mps=_speeds(track, lidar_times),
+        lidar_origins=origins,
+        labels_name=labels_name,
+        timings=timings,
+        warnings=warnings,
+        info={
+            "object_faces": len(obj.faces),
+            "render_faces": len(obj_render.faces),
+            "projected_height_px_max": h_px,
+            "object_size_m": obj.size.tolist(),
+            "proxy_faces": len(proxies.faces),
+            "strategy": getattr(prepared, "strategy", ""),
+            "world": prepared.world.to_json(),
+        },
+    )

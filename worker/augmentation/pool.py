@@ -1,0 +1,175 @@
+"""The process pool of an augmentation: warmed workers (GL context, render setups, ray
+caster) and the frames handed out one per task while this process works too.
+
+The pool uses the ``forkserver`` start method: each worker gets its own EGL context,
+none is ever inherited through ``fork``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import multiprocessing as mp
+import os
+import pickle
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+
+from geometry import camera as cam_mod
+from geometry.camera import CameraModel
+from worker.augmentation.frame import ChunkResult, augment_frames, camera_renderer
+from worker.augmentation.plan import Plan
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+#: ``progress(done, total)`` in frames.
+Progress = Callable[[int, int], None]
+
+
+# ---------------------------------------------------------------------------- the step
+def pool_context() -> Any:
+    """``forkserver`` (a clean server imports the heavy modules once; workers fork from it
+    without any GL or open3d state), ``spawn`` where forkserver does not exist."""
+    try:
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload(["worker.augmentation.frame"])
+        return ctx
+    except ValueError:
+        return mp.get_context("spawn")
+
+
+def default_setup_cache() -> Path:
+    """Where camera render setups are cached: ``$OSDAR_AR_CACHE_DIR/../render_setup``
+    or ``~/.cache/osdar-ar/render_setup``."""
+    env = os.environ.get("OSDAR_AR_CACHE_DIR")
+    base = Path(env).parent if env else Path.home() / ".cache/osdar-ar"
+    return base / "render_setup"
+
+
+def load_render_setup(cam: CameraModel, cache_dir: str | Path | None) -> None:
+    """Fill the renderer's in-process cache of ``cam``'s render setup (the undistorted
+    pinhole and its remap, ~2 s to compute at 12 MP) from a disk cache, computing and
+    storing it there on a miss. The remap depends only on the intrinsics, so every job
+    on the same cameras shares it.
+
+    Uses geometry.camera's private cache (``_SETUP_CACHE``, ``_camera_key``): the
+    renderer has no public hook for a precomputed setup.
+    """
+
+    margin = 2.0  # CameraModel.render_setup's default margin_px, as ObjectRenderer uses
+    key = cam_mod._camera_key(cam, margin)
+    if key in cam_mod._SETUP_CACHE or cache_dir is None:
+        return
+
+    digest = hashlib.sha256(repr((key[0], key[1], key[4])).encode() + key[2] + key[3])
+    path = Path(cache_dir) / f"{digest.hexdigest()[:32]}.npz"
+    if path.is_file():
+        try:
+            with np.load(path) as z:
+                cam_mod._SETUP_CACHE[key] = cam_mod.RenderSetup(
+                    K=z["K"], width=int(z["size"][0]), height=int(z["size"][1]),
+                    map_x=z["map_x"], map_y=z["map_y"],
+                )  # fmt: skip
+            return
+        except (OSError, ValueError, KeyError) as exc:
+            log.warning("render setup cache %s unreadable (%s): recomputing", path, exc)
+    setup = cam.render_setup(margin)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as fh:
+            np.savez(fh, K=setup.K, size=np.array([setup.width, setup.height]),
+                     map_x=setup.map_x, map_y=setup.map_y)  # fmt: skip
+        os.replace(tmp, path)
+    except OSError as exc:
+        log.debug("render setup not cached: %s", exc)
+
+
+def _warm_worker(cameras: list[dict[str, Any]], antialias: str, setup_cache: str | None) -> int:
+    """Create the worker's GL context, renderers (render setups) and ray caster ahead."""
+
+    for c in cameras:
+        cam = CameraModel.from_json(c)
+        load_render_setup(cam, setup_cache)
+        camera_renderer(cam, antialias)
+    scene = o3d.t.geometry.RaycastingScene()
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    scene.add_triangles(o3d.core.Tensor(tri), o3d.core.Tensor(np.array([[0, 1, 2]], np.uint32)))
+    scene.cast_rays(o3d.core.Tensor(np.array([[0.2, 0.2, 1, 0, 0, -1]], np.float32)))
+    return os.getpid()
+
+
+def start_pool(
+    workers: int,
+    cameras: list[CameraModel] | None = None,
+    antialias: str = "auto",
+    setup_cache: str | Path | None = None,
+) -> Any:
+    """A process pool for :func:`augment`, warmed with the cameras (GL context, render
+    setups from ``setup_cache``) while the parent plans."""
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=pool_context())
+    cams = [c.to_json() for c in cameras or []]
+    cache = None if setup_cache is None else str(setup_cache)
+    for _ in range(workers):
+        pool.submit(_warm_worker, cams, antialias, cache)
+    return pool
+
+
+_PLAN_CACHE: dict[str, Plan] = {}
+
+
+def _augment_frames_from_file(plan_file: str, frames: list[int], out_root: str) -> ChunkResult:
+    plan = _PLAN_CACHE.get(plan_file)
+    if plan is None:
+        _PLAN_CACHE.clear()
+        plan = _PLAN_CACHE[plan_file] = pickle.loads(Path(plan_file).read_bytes())
+    return augment_frames(plan, frames, out_root)
+
+
+def run_frames(
+    plan: Plan, scratch: Path, pool: Any, progress: Progress | None
+) -> list[ChunkResult]:
+    """All frames of the plan, one per task. With a pool of n - 1 processes, this
+    process is the n-th worker: it takes frames itself while the others start up and
+    between collecting their results (each child keeps two frames queued)."""
+    total = len(plan.frames)
+    pending = list(reversed(plan.frames))
+    chunks: list[ChunkResult] = []
+
+    def report() -> None:
+        if progress is not None:
+            progress(len(chunks), total)
+
+    if pool is None:
+        while pending:
+            chunks.append(augment_frames(plan, [pending.pop()], scratch))
+            report()
+        return chunks
+    # The plan goes to the workers once, as a file; each task names it.
+    plan_file = scratch / ".plan.pkl"
+    plan_file.write_bytes(pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL))
+    n_children = pool._max_workers
+    futures: set[Future] = set()
+    while pending or futures:
+        while pending and len(futures) < 2 * n_children:
+            f = pending.pop()
+            futures.add(pool.submit(_augment_frames_from_file, str(plan_file), [f], str(scratch)))
+        if pending:
+            chunks.append(augment_frames(plan, [pending.pop()], scratch))
+            report()
+            timeout = 0.0
+        else:
+            timeout = None
+        done, futures = wait(futures, timeout=timeout, return_when=FIRST_COMPLETED)
+        for fut in done:
+            chunks.append(fut.result())
+            report()
+    return chunks

@@ -1,0 +1,29 @@
+"""Worker lifecycle hooks: the reaper thread starts when a worker is ready and stops with it.
+
+Loaded by every worker through the Celery app's ``include`` list (``celery_app.py``); the
+API, which only sends tasks, never imports it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from celery.signals import worker_ready, worker_shutdown
+
+from osdar_platform.settings import get_settings
+from worker.orchestration.celery_app import celery_app
+from worker.orchestration.reaper import start_reaper, stop_reaper
+
+
+@worker_ready.connect
+def _start_reaper(sender: Any = None, **_: Any) -> None:
+    """Every worker sweeps for lost jobs at start and then periodically (reaper.py)."""
+
+    app = getattr(sender, "app", None) or celery_app
+    start_reaper(get_settings(), app)
+
+
+@worker_shutdown.connect
+def _stop_reaper(**_: Any) -> None:
+
+    stop_reaper()
