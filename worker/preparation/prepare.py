@@ -29,6 +29,7 @@ import math
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +60,7 @@ from worker.preparation.config import PrepareConfig
 from worker.preparation.frame_clouds import FrameClouds
 from worker.preparation.localization import odometry_track, run_strategy
 from worker.preparation.localization.anchor import anchored_to_ins
+from worker.preparation.localization.base import Health, LocalizationInput
 from worker.preparation.localization.common import make_input
 from worker.preparation.registration import RegisteredCloud, dense_points, register_clouds
 from worker.preparation.scene_elements import find_scene_elements, reference_centreline
@@ -179,32 +181,29 @@ def _reused(folder: Path) -> PreparedSequence:
 
 
 # ---------------------------------------------------------------------------- the recipe
-def run_preparation(
-    sequence: Sequence | str | Path,
-    config: PrepareConfig | None = None,
-    *,
-    clicks: Clicks | str | Path | None = None,
-    progress: Progress | None = None,
-    key: str = "",
-) -> PreparedSequence:
-    """Run the preparation recipe (module docstring) in memory; writes nothing."""
+@dataclass
+class LocalizationSetup:
+    """What the strategies run on: their input (with the ego centreline found on the
+    pre-registered cloud), the shared frame clouds, the odometry and the pre-map."""
 
-    config = config or PrepareConfig()
-    tune_malloc()  # big arrays reuse freed pages (worker/orchestration/malloc_tuning.py)
-    stage = _Stages(progress)
-    t_start = time.perf_counter()
-    warnings: list[str] = []
+    inp: LocalizationInput
+    clouds: FrameClouds
+    odo_track: PoseTrack
+    odo_health: Health
+    pre_cloud: RegisteredCloud
+    pre_tracks: Any
+
+
+def localization_setup(
+    seq: Sequence, config: PrepareConfig, stage: Callable[[str], Any] | None = None
+) -> LocalizationSetup:
+    """Stages 2-5 of the recipe: INS poses, odometry, pre-registration, the ego track.
+
+    ``stage(name)`` is a context manager timing each stage (none: untimed). Any strategy
+    then runs on ``setup.inp`` (:func:`~worker.preparation.localization.run_strategy`).
+    """
+    stage = stage or _Stages(None)
     reg = config.registration
-
-    with stage("open"):
-        seq = _open(sequence)
-        cl = _load_clicks(clicks)
-        cameras = load_cameras(seq.labels.raw, seq.cameras)
-        if cl is not None:
-            _check_clicks(cl, cameras)
-        if seq.lidar_stream is None:
-            raise PreparationError(f"{seq.folder}: sequence has no lidar files")
-
     with stage("ins"):
         try:
             inp = make_input(seq, options=dict(config.localization.options))
@@ -212,7 +211,6 @@ def run_preparation(
             raise PreparationError(f"{seq.folder}: no usable INS poses ({exc})") from exc
         if not inp.frame_times:
             raise PreparationError(f"{seq.folder}: no frame has a lidar timestamp")
-        frames = inp.frames
         # Every consumer below (odometry, both registrations) shares one read of each PCD.
         clouds = FrameClouds(
             seq, max_range=max(FRAME_CLOUD_RANGE_M, reg.max_range), voxel_size=FRAME_CLOUD_VOXEL_M
@@ -234,7 +232,7 @@ def run_preparation(
         pre_cloud = register_clouds(
             seq,
             pre_track,
-            frames=frames[:: reg.pre_frame_step],
+            frames=inp.frames[:: reg.pre_frame_step],
             clouds=clouds,
             **config.registration_kwargs(False),
         )
@@ -242,75 +240,141 @@ def run_preparation(
     with stage("pre_tracks"):
         # the strategies need the ego track only; the neighbours come from the final cloud
         pre_tracks = _find_tracks(find_tracks, pre_cloud, pre_track, seq, config, ego_only=True)
-
-    with stage("strategy"):
         inp.ego = pre_tracks.ego
-        result = run_strategy(config.strategy, inp)
-        track = result.track
+    return LocalizationSetup(inp, clouds, odo_track, odo_health, pre_cloud, pre_tracks)
 
-    with stage("registration"):
-        final_frames = sorted(set(frames[:: reg.frame_step]) | {frames[-1]})
-        cloud = register_clouds(
-            seq, track, frames=final_frames, clouds=clouds, **config.registration_kwargs(True)
-        )
-        if len(cloud) == 0:
-            warnings.append("the registered cloud is empty")
 
-    with stage("tracks"):
-        tracks = _find_tracks(find_tracks, cloud, track, seq, config)
+def run_preparation(
+    sequence: Sequence | str | Path,
+    config: PrepareConfig | None = None,
+    *,
+    clicks: Clicks | str | Path | None = None,
+    progress: Progress | None = None,
+    key: str = "",
+) -> PreparedSequence:
+    """Run the preparation recipe (module docstring) in memory; writes nothing."""
 
-    with stage("scene_elements"):
-        reference = reference_centreline(tracks.ego, track, extend=reg.max_range)
-        scene = find_scene_elements(
-            cloud.xyz, reference, config.planes, config.poles, view_xyz=_view_points(cloud, track)
-        )
+    config = config or PrepareConfig()
+    tune_malloc()  # big arrays reuse freed pages (worker/orchestration/malloc_tuning.py)
+    stage = _Stages(progress)
+    t_start = time.perf_counter()
 
-    with stage("calibration_point"):
-        times = {c: _camera_times(seq, c) for c in cameras}
+    with stage("open"):
+        seq = _open(sequence)
+        cl = _load_clicks(clicks)
+        cameras = load_cameras(seq.labels.raw, seq.cameras)
         if cl is not None:
-            cal = calibration_point_from_clicks(
-                cloud.xyz, track, cameras, times, cl, config.calibration,
-                dense=dense_points(seq, track, clouds),
-            )  # fmt: skip
-        elif config.calibration.auto:
-            cal = propose_pole_tops(scene.poles, track, cameras, times, config.calibration)
-        else:
-            cal = None
+            _check_clicks(cl, cameras)
+        if seq.lidar_stream is None:
+            raise PreparationError(f"{seq.folder}: sequence has no lidar files")
+    setup = localization_setup(seq, config, stage)
+    with stage("strategy"):
+        result = run_strategy(config.strategy, setup.inp)
+    final = _final_map(seq, config, setup, result.track, stage)
+    with stage("calibration_point"):
+        cal = _calibration(seq, config, cl, cameras, final, result.track, setup.clouds)
 
-    references = {"odometry": odo_track}
+    references = {"odometry": setup.odo_track}
+    warnings = list(final.warnings)
     try:
-        references["ins"] = _at_frames(inp.ins_track, inp)
+        references["ins"] = _at_frames(setup.inp.ins_track, setup.inp)
     except ValueError as exc:
         warnings.append(f"no INS reference poses at the frames ({exc})")
-    for source, ws in (
-        ("odometry", odo_health.warnings),
-        ("strategy", [w for w in result.health.warnings if w not in odo_health.warnings]),
-        ("tracks", tracks.warnings),
-        ("scene", scene.warnings),
-        ("calibration", [] if cal is None else cal.warnings),
-    ):
-        warnings += [f"{source}: {w}" for w in ws]
-    summary = _summary(
-        seq, config, cl, key, result, odo_health, pre_tracks, tracks, pre_cloud, cloud, scene, cal
-    )
+    warnings += _collect_warnings(setup, result, final, cal)
+    summary = _summary(seq, config, cl, key, result, setup, final, cal)
     summary["warnings"] = warnings
     summary["timings"] = dict(stage.seconds)
     summary["total_seconds"] = time.perf_counter() - t_start
     prepared = PreparedSequence(
         key=key,
-        world=inp.world,
-        track=track,
-        centrelines=list(tracks.centrelines),
-        planes=scene.planes,
-        poles=scene.poles,
+        world=setup.inp.world,
+        track=result.track,
+        centrelines=list(final.tracks.centrelines),
+        planes=final.scene.planes,
+        poles=final.scene.poles,
         calibration=cal,
         summary=summary,
         references=references,
-        _cloud=cloud,
-        _rail_points=np.asarray(tracks.rail_points, dtype=np.float64).reshape(-1, 3),
+        _cloud=final.cloud,
+        _rail_points=np.asarray(final.tracks.rail_points, dtype=np.float64).reshape(-1, 3),
     )
     log.info("preparation of %s done in %.1f s", seq.name, summary["total_seconds"])
     return prepared
+
+
+@dataclass
+class _FinalMap:
+    """Stages 7-9: the cloud registered with the strategy's poses, its tracks, the scene."""
+
+    cloud: RegisteredCloud
+    tracks: Any
+    scene: Any
+    warnings: list[str]
+
+
+def _final_map(
+    seq: Sequence,
+    config: PrepareConfig,
+    setup: LocalizationSetup,
+    track: PoseTrack,
+    stage: _Stages,
+) -> _FinalMap:
+    reg = config.registration
+    warnings = []
+    with stage("registration"):
+        frames = setup.inp.frames
+        final_frames = sorted(set(frames[:: reg.frame_step]) | {frames[-1]})
+        cloud = register_clouds(
+            seq, track, frames=final_frames, clouds=setup.clouds,
+            **config.registration_kwargs(True),
+        )  # fmt: skip
+        if len(cloud) == 0:
+            warnings.append("the registered cloud is empty")
+    with stage("tracks"):
+        tracks = _find_tracks(find_tracks, cloud, track, seq, config)
+    with stage("scene_elements"):
+        reference = reference_centreline(tracks.ego, track, extend=reg.max_range)
+        scene = find_scene_elements(
+            cloud.xyz, reference, config.planes, config.poles, view_xyz=_view_points(cloud, track)
+        )
+    return _FinalMap(cloud, tracks, scene, warnings)
+
+
+def _calibration(
+    seq: Sequence,
+    config: PrepareConfig,
+    cl: Clicks | None,
+    cameras: dict[str, Any],
+    final: _FinalMap,
+    track: PoseTrack,
+    clouds: FrameClouds,
+) -> CalibrationPoint | None:
+    """Stage 10: the calibration point from the clicks, or proposed pole tops, or none."""
+    times = {c: _camera_times(seq, c) for c in cameras}
+    if cl is not None:
+        return calibration_point_from_clicks(
+            final.cloud.xyz, track, cameras, times, cl, config.calibration,
+            dense=dense_points(seq, track, clouds),
+        )  # fmt: skip
+    if config.calibration.auto:
+        return propose_pole_tops(final.scene.poles, track, cameras, times, config.calibration)
+    return None
+
+
+def _collect_warnings(
+    setup: LocalizationSetup, result: Any, final: _FinalMap, cal: CalibrationPoint | None
+) -> list[str]:
+    odo_ws = setup.odo_health.warnings
+    out = []
+    for source, ws in (
+        ("odometry", odo_ws),
+        ("strategy", [w for w in result.health.warnings if w not in odo_ws]),
+        ("tracks", final.tracks.warnings),
+        ("scene", final.scene.warnings),
+        ("calibration", [] if cal is None else cal.warnings),
+    ):
+        out += [f"{source}: {w}" for w in ws]
+    return out
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -398,15 +462,13 @@ def _summary(
     clicks: Clicks | None,
     key: str,
     result: Any,
-    odo_health: Any,
-    pre_tracks: Any,
-    tracks: Any,
-    pre_cloud: RegisteredCloud,
-    cloud: RegisteredCloud,
-    scene: Any,
+    setup: LocalizationSetup,
+    final: _FinalMap,
     cal: CalibrationPoint | None,
 ) -> dict[str, Any]:
     frames = seq.frame_indices
+    odo_health, pre_tracks, pre_cloud = setup.odo_health, setup.pre_tracks, setup.pre_cloud
+    tracks, cloud, scene = final.tracks, final.cloud, final.scene
     return _jsonable(
         {
             "artifact_version": ARTIFACT_VERSION,
