@@ -223,12 +223,20 @@ def ins_at_frames(inp: LocalizationInput, health: Health) -> InsFrames:
 
 
 def travelled_robust(p: F64, v: F64, times: F64) -> float:
-    """Travelled distance (m) from the INS velocity integral (jump-proof), else positions."""
+    """Travelled distance (m) from the INS velocity integral, else from the positions.
+
+    The velocity is the INS's best-measured quantity (cm/s); its integral is immune to GNSS
+    jumps and to the position solution's wander, which over a few seconds shortens or
+    lengthens the position path by decimetres (osdar23 profile, station, 20 frames: true
+    11.40 m, velocity integral 11.40 m, positions 10.77 m). Positions only when no record
+    has a velocity.
+    """
     if len(times) < 2:
         return 0.0
     speed = np.linalg.norm(v, axis=1)
-    dist_v = float(np.sum(0.5 * (speed[:-1] + speed[1:]) * np.diff(times)))
-    return min(dist_v, travelled(p)) if np.any(speed > 0) else travelled(p)
+    if not np.any(speed > 0):
+        return travelled(p)
+    return float(np.sum(0.5 * (speed[:-1] + speed[1:]) * np.diff(times)))
 
 
 def _report_ins(ins: InsFrames, inp: LocalizationInput, health: Health) -> None:

@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -85,6 +85,9 @@ DEG = np.pi / 180.0
 #: Metres of track the frames must cover for the rails' heading term to be loosened to
 #: ``Sigmas.rail_heading_moving`` (their lateral positions then hold the heading).
 RAIL_HEADING_BASELINE_M = 20.0
+#: Length of track (m) over which a fitted centreline's orientation errors are taken as one
+#: (the fit's knots are 2 m apart and its smoothing spans several: NOISE_STEP_M x 2).
+RAIL_CORRELATION_M = 8.0
 
 
 @dataclass(frozen=True)
@@ -161,6 +164,9 @@ class Sigmas:
     pos_bias_step: tuple[float, float, float] = (0.02, 0.1, 1.0)  # floor, default, cap
 
 
+_ONES = np.ones(1)
+
+
 @dataclass
 class Problem:
     """Everything the residual function needs (fixed during a solve)."""
@@ -186,6 +192,13 @@ class Problem:
     bias_sigma: F64  # (6,) prior sigmas of a knot's size (attitude rad, position m)
     bias_step_sigma: F64  # (6,) prior sigmas of its change between knots
     ground: dict | None = None  # ground pairs: k, j (P,), T_k_j (P, 4, 4), w (P, 3)
+    #: Variance factors of the measurement blocks (:data:`SCALED_BLOCKS`), per component:
+    #: each block's sigmas are multiplied by these (:func:`variance_factors`).
+    scale: dict[str, F64] = field(default_factory=dict)
+
+    def s(self, block: str) -> F64:
+        """The variance factor(s) of ``block`` (ones until estimated)."""
+        return self.scale.get(block, _ONES)
 
 
 def _log_rotation(R: F64) -> F64:
@@ -234,7 +247,25 @@ def _linearise_rails(ego, p_world: F64, R_hint: F64, sig: Sigmas) -> dict:
     sigma_r = np.maximum(np.asarray(sig.rail_r, dtype=np.float64), noise)
     if len(s) and float(np.ptp(s)) >= RAIL_HEADING_BASELINE_M:
         sigma_r[2] = max(sigma_r[2], sig.rail_heading_moving)
-    return {"c": T[:, :3, 3].copy(), "R": T[:, :3, :3].copy(), "sigma_r": sigma_r}
+    # Frames within one correlation length of track share one centreline error: together
+    # they carry one orientation measurement, not one each (else a slow or short sequence
+    # pins its relative rotations to the fitted curve's wiggles).
+    sharing = _frames_sharing(s, RAIL_CORRELATION_M)
+    return {
+        "c": T[:, :3, 3].copy(),
+        "R": T[:, :3, :3].copy(),
+        "sigma_r": sigma_r[None, :] * np.sqrt(sharing)[:, None],
+        "sigma_r_base": sigma_r,
+        "frames_sharing": float(np.median(sharing)),
+    }
+
+
+def _frames_sharing(s: F64, length_m: float) -> F64:
+    """(n,) how many frames lie within ``length_m / 2`` of each frame along the track."""
+    order = np.sort(s)
+    lo = np.searchsorted(order, s - 0.5 * length_m, side="left")
+    hi = np.searchsorted(order, s + 0.5 * length_m, side="right")
+    return np.maximum(hi - lo, 1).astype(np.float64)
 
 
 def _n_params(n: int, n_knots: int) -> int:
@@ -306,20 +337,20 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
     # odometry
     Rt = np.swapaxes(R[:-1], 1, 2)
     dp = np.einsum("nij,nj->ni", Rt, p[1:] - p[:-1]) - pb.d_t
-    out.append((dp * pb.w_odo_t).ravel())
+    out.append((dp * pb.w_odo_t / pb.s("odo_t")).ravel())
     E = np.swapaxes(pb.d_R, 1, 2) @ Rt @ R[1:]
-    out.append((_log_rotation(E) * pb.w_odo_r[:, None]).ravel())
+    out.append((_log_rotation(E) * pb.w_odo_r[:, None] / pb.s("odo_r")).ravel())
     out.append(_ins_blocks(x, pb, R, p))
     # rails
     if pb.rail is not None:
         c, Rr = pb.rail["c"], pb.rail["R"]
         d = p - c
-        lat_r = np.einsum("ni,ni->n", d, Rr[:, :, 1]) / sig.rail_lat
-        ver_r = np.einsum("ni,ni->n", d, Rr[:, :, 2]) / sig.rail_vert
+        lat_r = np.einsum("ni,ni->n", d, Rr[:, :, 1]) / (sig.rail_lat * pb.s("rail_lat"))
+        ver_r = np.einsum("ni,ni->n", d, Rr[:, :, 2]) / (sig.rail_vert * pb.s("rail_vert"))
         out.append(lat_r)
         out.append(ver_r)
         err = _log_rotation(np.swapaxes(Rr, 1, 2) @ R)
-        out.append((err / pb.rail["sigma_r"]).ravel())
+        out.append((err / (pb.rail["sigma_r"] * pb.s("rail_r"))).ravel())
     # ground pairs: height, roll and pitch of frame j in frame k
     if pb.ground is not None:
         g = pb.ground
@@ -328,7 +359,8 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
         B_t = np.einsum("nji,nj->ni", Rk, p[g["j"]] - p[g["k"]])
         E_t = np.einsum("nij,nj->ni", MRt, B_t - g["T_k_j"][:, :3, 3])
         E_r = _log_rotation(MRt @ np.swapaxes(Rk, 1, 2) @ Rj)
-        out.append((np.column_stack([E_t[:, 2], E_r[:, 0], E_r[:, 1]]) * g["w"]).ravel())
+        gr = np.column_stack([E_t[:, 2], E_r[:, 0], E_r[:, 1]]) * g["w"] / pb.s("ground")
+        out.append(gr.ravel())
     # smoothness
     if pb.n >= 3:
         a_world = p[:-2] - 2.0 * p[1:-1] + p[2:]
@@ -354,13 +386,13 @@ def _ins_blocks(x: F64, pb: Problem, R: F64, p: F64) -> F64:
         bias = _bias_at_records(x, pb)
         beta = bias[:, :3]
         pred = p[k] + R[k] @ lever + bias[:, 3:]
-        out.append(((pred - pb.p_ins) / sig.ins_p).ravel())
+        out.append(((pred - pb.p_ins) / (sig.ins_p * pb.s("ins_p"))).ravel())
         R_meas = Rotation.from_rotvec(pb.w_ins * lat).as_matrix() @ pb.R_ins
         R_pred = (
             Rotation.from_rotvec(beta).as_matrix() @ R[k] @ Rotation.from_rotvec(bore).as_matrix()
         )
         err = _log_rotation(np.swapaxes(R_meas, 1, 2) @ R_pred)
-        out.append((err / sig.ins_r).ravel())
+        out.append((err / (sig.ins_r * pb.s("ins_r"))).ravel())
     return np.concatenate(out) if out else np.zeros(0)
 
 
@@ -774,6 +806,74 @@ def misalignment(x: F64, n: int) -> InsToLidar:
     return InsToLidar.from_T(N @ np.linalg.inv(M), latency_s=lat)
 
 
+#: Measurement blocks whose sigmas are scaled to their own residuals, with their component
+#: count (residuals are stacked as (rows, components)), in :func:`residuals`' order.
+SCALED_BLOCKS = ("odo_t", "odo_r", "ins_p", "ins_r", "rail_lat", "rail_vert", "rail_r", "ground")
+#: Median of a chi-square variable with one degree of freedom: a robust variance factor
+#: of normalised residuals is ``median(r^2) / CHI2_1_MEDIAN``.
+CHI2_1_MEDIAN = 0.454936
+#: Fewest residual rows a block needs for its variance factor to be estimated.
+MIN_ROWS_FOR_SCALE = 6
+
+
+def measurement_blocks(pb: Problem, x: F64) -> dict[str, F64]:
+    """The normalised residuals of each measurement block, (rows, components) each."""
+    r = residuals(x, pb)
+    n, m = pb.n, len(pb.ins_k)
+    sizes: list[tuple[str, int, int]] = [("odo_t", n - 1, 3), ("odo_r", n - 1, 3)]
+    if m:
+        sizes += [("ins_p", m, 3), ("ins_r", m, 3)]
+    if pb.rail is not None:
+        sizes += [("rail_lat", n, 1), ("rail_vert", n, 1), ("rail_r", n, 3)]
+    if pb.ground is not None:
+        sizes.append(("ground", len(pb.ground["k"]), 3))
+    out, i = {}, 0
+    for name, rows, comps in sizes:
+        out[name] = r[i : i + rows * comps].reshape(rows, comps)
+        i += rows * comps
+    return out
+
+
+def variance_factors(pb: Problem, x: F64) -> dict[str, F64]:
+    """Per block and component, the factor (>= 1) by which its sigmas understate the scatter
+    of its own residuals at solution ``x`` (robust variance-component estimate).
+
+    A source noisier than its design sigmas (a centreline fitted on a short or sparse
+    cloud, a wandering INS, an ICP that slips) then weighs what its residuals say it is
+    worth, not what it was assumed to be worth; factors never go below 1 (a block is
+    never trusted more than designed). Residual rows of zero weight (odometry steps
+    switched off) are left out.
+    """
+    out: dict[str, F64] = {}
+    for name, res in measurement_blocks(pb, x).items():
+        cur = np.broadcast_to(pb.s(name), (res.shape[1],)).astype(np.float64)
+        f = np.ones(res.shape[1])
+        for c in range(res.shape[1]):
+            rc = res[:, c]
+            rc = rc[rc != 0.0]
+            if len(rc) >= MIN_ROWS_FOR_SCALE:
+                f[c] = np.sqrt(np.median(rc**2) / CHI2_1_MEDIAN)
+        out[name] = np.maximum(cur * np.maximum(f, 1.0), 1.0)
+    return out
+
+
+#: Rounds of variance-factor estimation and re-solving (each converges in a few steps).
+VCE_ROUNDS = 3
+
+
+def _rescale_and_solve(pb: Problem, x: F64, health: Health) -> F64:
+    """Re-solve with each block's sigmas scaled to its residuals until the factors settle."""
+    for _ in range(VCE_ROUNDS):
+        factors = variance_factors(pb, x)
+        if all(np.allclose(v, pb.s(k), rtol=0.1) for k, v in factors.items()):
+            break
+        pb.scale = factors
+        x = solve(pb, x, max_iter=4)
+    for name, f in pb.scale.items():
+        health.metrics[f"fused_variance_factor_{name}"] = float(np.max(f))
+    return x
+
+
 def _block_rms(pb: Problem, x: F64) -> dict[str, float]:
     """RMS (in sigmas) of the residual blocks, for health metrics."""
     r = residuals(x, pb)
@@ -787,7 +887,8 @@ def _block_rms(pb: Problem, x: F64) -> dict[str, float]:
         out[f"fused_rms_{name}"] = float(np.sqrt(np.mean(seg**2))) if size else 0.0
         i += size
     if pb.rail is not None:
-        for axis, sigma in zip(("roll", "pitch", "heading"), pb.rail["sigma_r"], strict=True):
+        out["fused_rail_frames_sharing_median"] = pb.rail["frames_sharing"]
+        for axis, sigma in zip(("roll", "pitch", "heading"), pb.rail["sigma_r_base"], strict=True):
             out[f"fused_rail_sigma_{axis}_deg"] = float(np.degrees(sigma))
     return out
 
@@ -811,6 +912,7 @@ class FusedStrategy:
                 R, p, _, _, _ = _unpack(x, pb)
                 pb.rail = _linearise_rails(inp.ego, p, R, pb.sig)
                 x = solve(pb, x, max_iter=4)
+            x = _rescale_and_solve(pb, x, health)
         except Exception as exc:
             log.exception("fused smoothing failed")
             return self._fallback(inp, health, started, f"smoothing failed ({exc})")
