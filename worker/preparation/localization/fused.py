@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
+from scipy.ndimage import median_filter
 from scipy.sparse import coo_matrix, csc_matrix, identity
 from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
@@ -84,7 +85,7 @@ DEG = np.pi / 180.0
 
 #: Metres of track the frames must cover for the rails' heading term to be loosened to
 #: ``Sigmas.rail_heading_moving`` (their lateral positions then hold the heading).
-RAIL_HEADING_BASELINE_M = 20.0
+RAIL_HEADING_BASELINE_M = 5.0
 #: Length of track (m) over which a fitted centreline's orientation errors are taken as one
 #: (the fit's knots are 2 m apart and its smoothing spans several: NOISE_STEP_M x 2).
 RAIL_CORRELATION_M = 8.0
@@ -195,10 +196,22 @@ class Problem:
     #: Variance factors of the measurement blocks (:data:`SCALED_BLOCKS`), per component:
     #: each block's sigmas are multiplied by these (:func:`variance_factors`).
     scale: dict[str, F64] = field(default_factory=dict)
+    #: (n-1,) steps replaced by a zero-velocity update (never rescaled)
+    zupt: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    #: (m,) factor on the INS attitude sigma per record: sqrt(records within one bias knot
+    #: spacing), the records that share one slow attitude error (None: 1)
+    ins_r_share: F64 | None = None
 
     def s(self, block: str) -> F64:
         """The variance factor(s) of ``block`` (ones until estimated)."""
         return self.scale.get(block, _ONES)
+
+    def s_odo(self, block: str) -> F64:
+        """(n-1, 3) variance factors of the odometry rows (1 on zero-velocity steps)."""
+        f = np.broadcast_to(self.s(block), (self.n - 1, 3)).copy()
+        if len(self.zupt):
+            f[self.zupt] = 1.0
+        return f
 
 
 def _log_rotation(R: F64) -> F64:
@@ -337,9 +350,9 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
     # odometry
     Rt = np.swapaxes(R[:-1], 1, 2)
     dp = np.einsum("nij,nj->ni", Rt, p[1:] - p[:-1]) - pb.d_t
-    out.append((dp * pb.w_odo_t / pb.s("odo_t")).ravel())
+    out.append((dp * pb.w_odo_t / pb.s_odo("odo_t")).ravel())
     E = np.swapaxes(pb.d_R, 1, 2) @ Rt @ R[1:]
-    out.append((_log_rotation(E) * pb.w_odo_r[:, None] / pb.s("odo_r")).ravel())
+    out.append((_log_rotation(E) * pb.w_odo_r[:, None] / pb.s_odo("odo_r")).ravel())
     out.append(_ins_blocks(x, pb, R, p))
     # rails
     if pb.rail is not None:
@@ -392,7 +405,8 @@ def _ins_blocks(x: F64, pb: Problem, R: F64, p: F64) -> F64:
             Rotation.from_rotvec(beta).as_matrix() @ R[k] @ Rotation.from_rotvec(bore).as_matrix()
         )
         err = _log_rotation(np.swapaxes(R_meas, 1, 2) @ R_pred)
-        out.append((err / (sig.ins_r * pb.s("ins_r"))).ravel())
+        share = 1.0 if pb.ins_r_share is None else pb.ins_r_share[:, None]
+        out.append((err / (sig.ins_r * share * pb.s("ins_r"))).ravel())
     return np.concatenate(out) if out else np.zeros(0)
 
 
@@ -516,6 +530,47 @@ def _odometry_weights(
     return w_t, w_r, degenerate_run
 
 
+#: INS speed (m/s) below which a step between two frames is a standstill (the INS velocity
+#: is good to 0.005-0.02 m/s): the zero-velocity update replaces the ICP step there.
+ZUPT_SPEED_MPS = 0.05
+#: Rotation sigma of a standstill step (rad): a train that stands does not turn.
+ZUPT_SIGMA_R = 0.001 * DEG
+#: Floor of the translation sigma of a standstill step (m); above it, what the INS speed
+#: allows over the step.
+ZUPT_SIGMA_T_MIN = 0.0005
+#: Half-width (frames) of the median filter on the INS speed for the standstill test.
+ZUPT_WINDOW = 5
+
+
+def zero_velocity_steps(
+    ins: InsFrames, times: F64, d_t: F64, d_R: F64, w_t: F64, w_r: F64, health: Health
+) -> NDArray[np.bool_]:
+    """Standing steps (both frames' INS speed below ZUPT_SPEED_MPS): the relative motion
+    becomes the identity with the sigmas a standstill allows (in place). ICP between two
+    scans of the same scene jitters by millimetres and thousandths of a degree, which a
+    12 MP camera shows as pixels at 30 m; the INS's zero speed is the better measurement."""
+    raw = np.linalg.norm(ins.v_world, axis=1)
+    if len(raw) < 2:
+        return np.zeros(max(len(raw) - 1, 0), dtype=bool)
+    # the velocity's noise (a few cm/s per axis) averaged out over +-ZUPT_WINDOW frames
+    speed = median_filter(raw, size=2 * ZUPT_WINDOW + 1, mode="nearest")
+    step_speed = 0.5 * (speed[1:] + speed[:-1])
+    still = (speed[1:] < ZUPT_SPEED_MPS) & (speed[:-1] < ZUPT_SPEED_MPS)
+    if ins.standstill:  # the whole sequence stands (INS travelled distance)
+        still[:] = True
+    if not np.any(still):
+        return still
+    dt = np.diff(times)[still]
+    moving_bound = np.zeros_like(dt) if ins.standstill else step_speed[still] * dt
+    sigma_t = np.maximum(moving_bound, ZUPT_SIGMA_T_MIN)
+    d_t[still] = 0.0
+    d_R[still] = np.eye(3)
+    w_t[still] = 1.0 / sigma_t[:, None]
+    w_r[still] = 1.0 / ZUPT_SIGMA_R
+    health.metrics["fused_zero_velocity_steps"] = float(np.sum(still))
+    return still
+
+
 def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Problem:
     """Initial guess and measurements of the smoothing problem."""
     ins = ins_at_frames(inp, health)
@@ -548,6 +603,10 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
             False,
         )
     )
+    zupt = np.zeros(max(n - 1, 0), dtype=bool)
+    if n >= 2:
+        times = np.asarray(inp.times, dtype=np.float64)
+        zupt = zero_velocity_steps(ins, times, d_t, d_R, w_t, w_r, health)
     heading = _heading_change_deg(R_ins_all)
     health.metrics["fused_heading_change_deg"] = heading
     lever_sigma = np.full(3, sig.lever)
@@ -594,6 +653,8 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         bias_sigma=bias_sigma,
         bias_step_sigma=bias_step,
         ground=_ground_constraints(inp, health, sig) if n >= 2 else None,
+        zupt=zupt,
+        ins_r_share=np.sqrt(_frames_sharing(np.asarray(inp.times)[k], sig.bias_knot_s)),
     )
 
 
@@ -846,6 +907,8 @@ def variance_factors(pb: Problem, x: F64) -> dict[str, F64]:
     """
     out: dict[str, F64] = {}
     for name, res in measurement_blocks(pb, x).items():
+        if name.startswith("odo") and len(pb.zupt):
+            res = res[~pb.zupt]  # zero-velocity steps are not the ICP's
         cur = np.broadcast_to(pb.s(name), (res.shape[1],)).astype(np.float64)
         f = np.ones(res.shape[1])
         for c in range(res.shape[1]):
