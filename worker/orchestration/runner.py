@@ -65,10 +65,9 @@ from worker.orchestration.state import (
 from worker.osdar.errors import SequenceError
 from worker.osdar.sequence import find_labels_file
 from worker.packaging import build_archive, make_previews
-from worker.preparation.artifact import key_lock
+from worker.preparation.artifact import PreparedSequence, key_lock
 from worker.preparation.calibration_point import Clicks, ClicksError
 from worker.preparation.config import PrepareConfig
-from worker.preparation.artifact import PreparedSequence
 from worker.preparation.prepare import PreparationError, prepare
 
 log = logging.getLogger(__name__)
