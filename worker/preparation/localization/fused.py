@@ -67,7 +67,8 @@ from worker.preparation.localization.common import (
 )
 from worker.preparation.localization.ground_pairs import LAGS as GROUND_LAGS
 from worker.preparation.localization.ground_pairs import ground_pairs
-from worker.preparation.localization.ins_wander import ins_wander
+from worker.preparation.localization.hat import hat_variances
+from worker.preparation.localization.ins_wander import ins_wander, robust_rms
 from worker.preparation.localization.odometry import (
     degenerate_frames,
     is_degenerate,
@@ -104,6 +105,12 @@ class Sigmas:
     #: KISS-ICP's 6; at 0.2 m a 3 m GNSS jump leaked into the poses).
     ins_p: float = 0.1
     ins_r: float = 0.03 * DEG
+    #: Estimate the INS attitude's white noise per sequence (:func:`ins_attitude_noise`)
+    #: instead of ``ins_r``, within these bounds (rad).
+    ins_r_from_data: bool = True
+    ins_r_bounds: tuple[float, float] = (0.003 * DEG, 0.1 * DEG)
+    #: Scale the INS attitude sigma by sqrt(records within one knot spacing).
+    ins_r_share: bool = True
     #: The base origin on the fitted centreline (m). Loose: the centreline is fitted from a
     #: cloud registered with the odometry's poses, its errors run along the track over
     #: metres, and tens of frames share them; at 1.5 / 1 cm they pinned the poses to those
@@ -405,7 +412,7 @@ def _ins_blocks(x: F64, pb: Problem, R: F64, p: F64) -> F64:
             Rotation.from_rotvec(beta).as_matrix() @ R[k] @ Rotation.from_rotvec(bore).as_matrix()
         )
         err = _log_rotation(np.swapaxes(R_meas, 1, 2) @ R_pred)
-        share = 1.0 if pb.ins_r_share is None else pb.ins_r_share[:, None]
+        share = 1.0 if pb.ins_r_share is None else pb.ins_r_share
         out.append((err / (sig.ins_r * share * pb.s("ins_r"))).ravel())
     return np.concatenate(out) if out else np.zeros(0)
 
@@ -627,7 +634,8 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         np.asarray(inp.times, dtype=np.float64), k, sig.bias_knot_s
     )
     bias_sigma = np.array([sig.att_bias] * 3 + [sig.pos_bias] * 3)
-    bias_step = _bias_step_sigmas(inp, ins, p_ins_all, degenerate, health, sig)
+    ground = _ground_constraints(inp, health, sig) if n >= 2 else None
+    bias_step = _bias_step_sigmas(inp, ins, p_ins_all, degenerate, health, sig, ground)
     if rail is None:
         # Nothing else fixes the absolute attitude: the INS's is taken as is.
         bias_sigma[:3] = 0.005 * DEG
@@ -652,10 +660,58 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         n_knots=n_knots,
         bias_sigma=bias_sigma,
         bias_step_sigma=bias_step,
-        ground=_ground_constraints(inp, health, sig) if n >= 2 else None,
+        ground=ground,
         zupt=zupt,
-        ins_r_share=np.sqrt(_frames_sharing(np.asarray(inp.times)[k], sig.bias_knot_s)),
+        ins_r_share=_ins_attitude_factors(inp, ins, k, ground, health, sig),
     )
+
+
+def _ins_attitude_factors(
+    inp: LocalizationInput,
+    ins: InsFrames,
+    k: NDArray[np.int64],
+    ground: dict | None,
+    health: Health,
+    sig: Sigmas,
+) -> F64 | None:
+    """(m, 3) factors on ``sig.ins_r`` per INS record and axis (roll, pitch, heading)."""
+    f = np.ones((len(k), 3))
+    if sig.ins_r_from_data and ground is not None:
+        noise = ins_attitude_noise(ins.T_world_base[:, :3, :3], ground)
+        if noise is not None:
+            lo, hi = sig.ins_r_bounds
+            est = np.clip(noise, lo, hi)
+            f *= (est / sig.ins_r)[None, :]
+            for axis, v in zip(("roll", "pitch", "heading"), est, strict=True):
+                health.metrics[f"fused_ins_attitude_noise_{axis}_deg"] = float(np.degrees(v))
+    if sig.ins_r_share:
+        f *= np.sqrt(_frames_sharing(np.asarray(inp.times)[k], sig.bias_knot_s))[:, None]
+    return f
+
+
+def ins_attitude_noise(R_ins: F64, ground: dict) -> F64 | None:
+    """(3,) white noise (rad) of the INS attitude per record about (roll, pitch, heading),
+    or None with fewer than MIN_NOISE_PAIRS lag-1 ground pairs.
+
+    The ground pairs' relative roll and pitch between consecutive frames are good to a few
+    thousandths of a degree; the INS's relative attitude differs from them by its noise at
+    both records: the robust RMS of the difference over sqrt(2). Heading has no such
+    reference: it takes the larger of the two (an INS's heading is never better aligned
+    than its levelling).
+    """
+    lag1 = (ground["j"] - ground["k"]) == 1
+    if int(np.sum(lag1)) < MIN_NOISE_PAIRS:
+        return None
+    kk, jj = ground["k"][lag1], ground["j"][lag1]
+    rel_ins = np.swapaxes(R_ins[kk], 1, 2) @ R_ins[jj]
+    rel_gnd = ground["T_k_j"][lag1][:, :3, :3]
+    d = _log_rotation(np.swapaxes(rel_gnd, 1, 2) @ rel_ins)
+    rp = robust_rms(d[:, :2]) / np.sqrt(2.0)
+    return np.array([rp[0], rp[1], max(rp[0], rp[1])])
+
+
+#: Fewest lag-1 ground pairs for :func:`ins_attitude_noise`.
+MIN_NOISE_PAIRS = 5
 
 
 def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> dict | None:
@@ -679,12 +735,10 @@ def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> 
     lag = np.array([pr.j - pr.k for pr in pairs], dtype=np.float64)
     sigma = np.asarray(sig.ground_sigma_a)[None, :] + lag[:, None] * np.asarray(sig.ground_sigma_b)
     health.metrics["fused_ground_rms_m"] = float(np.median([pr.rms_m for pr in pairs]))
-    return {
-        "k": np.array([pr.k for pr in pairs], dtype=np.int64),
-        "j": np.array([pr.j for pr in pairs], dtype=np.int64),
-        "T_k_j": np.array([pr.T_k_j for pr in pairs]),
-        "w": 1.0 / sigma,
-    }
+    k = np.array([pr.k for pr in pairs], dtype=np.int64)
+    j = np.array([pr.j for pr in pairs], dtype=np.int64)
+    T_k_j = np.array([pr.T_k_j for pr in pairs])
+    return {"k": k, "j": j, "T_k_j": T_k_j, "w": 1.0 / sigma}
 
 
 def _bias_step_sigmas(
@@ -694,9 +748,11 @@ def _bias_step_sigmas(
     degenerate: bool,
     health: Health,
     sig: Sigmas,
+    ground: dict | None = None,
 ) -> F64:
     """(6,) sigmas of the INS bias' change between knots: attitude about world x, y, z
-    (rad), position along world x, y, z (m), from the INS's wander against the odometry.
+    (rad), position along world x, y, z (m), from the INS's wander against the odometry
+    (roll and pitch against the ground pairs where there are some: :func:`_ins_level_wander`).
 
     The attitude's horizontal axes take the larger of the roll and pitch wander, the
     vertical the heading's. Where the odometry is degenerate along the track it cannot judge
@@ -716,7 +772,13 @@ def _bias_step_sigmas(
     w = ins_wander(T_ins, T_odo, times, ins.covered, sig.bias_knot_s)
     if w is None:
         return out
-    rot = w.rotation_rad
+    rot = w.rotation_rad.copy()
+    level = _ins_level_wander(
+        ins.T_world_base[:, :3, :3], T_odo[:, :3, :3], ground, times, sig.bias_knot_s
+    )
+    if level is not None:  # the ground's roll and pitch drift far less than the odometry's
+        rot[:2] = level
+        health.metrics["fused_ins_wander_source_level"] = 1.0
     out[:3] = np.clip([max(rot[0], rot[1])] * 2 + [rot[2]], a_floor, a_cap)
     out[3:] = np.clip(w.position_m, p_floor, p_cap)
     if degenerate:
@@ -726,6 +788,39 @@ def _bias_step_sigmas(
     for name, v in zip(("east", "north", "up"), w.position_m, strict=True):
         health.metrics[f"fused_ins_wander_{name}_m"] = float(v)
     return out
+
+
+def _ins_level_wander(
+    R_ins: F64, R_odo: F64, ground: dict | None, times: F64, knot_s: float
+) -> F64 | None:
+    """(2,) the INS's roll and pitch wander (rad) over one knot spacing, None without
+    enough ground pairs.
+
+    Three independent measures of the relative roll and pitch over the ground pairs'
+    longest lag - the INS, the ground pairs and the odometry - give each one's own error
+    variance from the variances of their pairwise differences (:mod:`.hat`). Measured
+    against the odometry
+    alone, a good INS looked five times worse than it is (the odometry's drift counted as
+    the INS's). Scaled to the knot spacing as a random walk.
+    """
+    if ground is None or len(times) < 2:
+        return None
+    lags = ground["j"] - ground["k"]
+    lag = int(np.max(lags))
+    sel = lags == lag
+    if lag < 2 or int(np.sum(sel)) < MIN_NOISE_PAIRS:
+        return None
+    kk, jj = ground["k"][sel], ground["j"][sel]
+    rel = {
+        "ins": np.swapaxes(R_ins[kk], 1, 2) @ R_ins[jj],
+        "odometry": np.swapaxes(R_odo[kk], 1, 2) @ R_odo[jj],
+        "ground": ground["T_k_j"][sel][:, :3, :3],
+    }
+    v = hat_variances(rel)
+    if v is None:
+        return None
+    span = float(np.median(times[jj] - times[kk]))
+    return np.sqrt(v["ins"]) * np.sqrt(knot_s / max(span, 1e-3))
 
 
 def _heading_change_deg(R_world_base: F64) -> float:

@@ -1,0 +1,50 @@
+"""Each source's own error from three independent measures of the same relative motion.
+
+With three measures ``a``, ``b``, ``c`` of one quantity whose errors are independent, the
+variances of their pairwise differences are sums of two of the three error variances, so
+each one follows without any ground truth (the "three-cornered hat" of clock metrology):
+``var_a = (var(a - b) + var(a - c) - var(b - c)) / 2``. Here the quantity is the relative
+roll and pitch between two frames, measured by the INS, the lidar odometry and the ground
+both frames see (:mod:`~worker.preparation.localization.ground_pairs`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from worker.preparation.localization.ins_wander import robust_rms
+
+F64 = NDArray[np.float64]
+
+#: Fewest frame pairs for an estimate.
+MIN_PAIRS = 5
+
+
+def relative_difference(R_a: F64, R_b: F64) -> F64:
+    """(m, 3) rotation vector of ``R_b^T R_a`` for (m, 3, 3) relative rotations (rad)."""
+    return Rotation.from_matrix(np.swapaxes(R_b, 1, 2) @ R_a).as_rotvec()
+
+
+def hat_variances(rel: dict[str, F64], axes: slice = slice(0, 2)) -> dict[str, F64] | None:
+    """Per source, the error variance (rad^2) about each of ``axes`` (default roll, pitch).
+
+    rel : three sources' (m, 3, 3) relative rotations of the same m frame pairs.
+    Returns None with fewer than MIN_PAIRS pairs. Variances are floored at 0 (sampling
+    noise can make the formula negative for a very good source).
+    """
+    names = list(rel)
+    if len(names) != 3:
+        raise ValueError(f"the three-cornered hat needs 3 sources, got {names}")
+    if len(rel[names[0]]) < MIN_PAIRS:
+        return None
+    v = {}
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            v[a, b] = v[b, a] = robust_rms(relative_difference(rel[a], rel[b])[:, axes]) ** 2
+    out = {}
+    for a in names:
+        b, c = (x for x in names if x != a)
+        out[a] = np.maximum(0.5 * (v[a, b] + v[a, c] - v[b, c]), 0.0)
+    return out
