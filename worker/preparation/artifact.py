@@ -58,7 +58,7 @@ ARTIFACT_VERSION = 1
 #: Revision of the preparation's results: bumped whenever a change of the code changes what
 #: a preparation of the same sequence with the same config produces (a strategy's weights,
 #: the centreline fit...), so that artifacts cached by an older release are not reused.
-PREPARATION_REVISION = 10
+PREPARATION_REVISION = 11
 
 FILES = (
     "poses.csv",
