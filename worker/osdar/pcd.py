@@ -7,8 +7,8 @@ array in its stored dtype plus the :class:`PcdHeader` it was read with, so that
 
 binary_compressed is PCL's layout: the fields column-major (all values of the first field,
 then the second, ...), LZF-compressed, preceded by two little-endian uint32, the compressed
-then the uncompressed size. LZF runs through the C module ``lzf`` (pip ``python-lzf``)
-when it is installed, else through the pure-Python codec of this module.
+then the uncompressed size. LZF runs through the C module ``lzf`` (pip ``python-lzf``, a
+required dependency).
 """
 
 from __future__ import annotations
@@ -18,15 +18,11 @@ import struct
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import lzf
 import numpy as np
 from numpy.typing import NDArray
 
 from worker.osdar.errors import SequenceError, atomic_write_bytes
-
-try:  # optional C accelerator (pip install python-lzf)
-    import lzf as _c_lzf  # type: ignore[import-not-found]
-except ImportError:  # pragma: no cover - depends on the machine
-    _c_lzf = None
 
 logger = logging.getLogger(__name__)
 
@@ -520,7 +516,7 @@ def _fmt_float64(v: float) -> str:
 
 
 # ---------------------------------------------------------------------------------------
-# LZF (liblzf format, as used by PCL)
+# LZF (liblzf format, as used by PCL), through the C module ``lzf`` (pip ``python-lzf``)
 # ---------------------------------------------------------------------------------------
 
 
@@ -532,158 +528,20 @@ def lzf_decompress(data: bytes, out_len: int) -> bytes:
     ValueError
         Corrupt stream or a size other than ``out_len``.
     """
-    if _c_lzf is not None:  # pragma: no cover - depends on the machine
-        out = _c_lzf.decompress(data, out_len + 1) if out_len else b""
-        if out is None or len(out) != out_len:
-            raise ValueError(f"LZF stream does not decompress to {out_len} bytes")
-        return out
-    return lzf_decompress_py(data, out_len)
+    if out_len == 0:
+        return b""
+    # one byte of room more than expected: a longer stream fails rather than fits
+    out = lzf.decompress(data, out_len + 1)
+    if out is None or len(out) != out_len:
+        raise ValueError(f"LZF stream does not decompress to {out_len} bytes")
+    return bytes(out)
 
 
 def lzf_compress(data: bytes) -> bytes:
     """Compress ``data`` to an LZF stream (never fails: incompressible data grows ~3 %)."""
-    if _c_lzf is not None and len(data) > 0:  # pragma: no cover - depends on the machine
-        out = _c_lzf.compress(data, len(data) + len(data) // 31 + 16)
-        if out is not None:
-            return out
-    return lzf_compress_py(data)
-
-
-def lzf_decompress_py(data: bytes, out_len: int) -> bytes:
-    """Pure-Python LZF decompressor (about 10 MB/s on float point data)."""
-    src = bytes(data)
-    n = len(src)
-    out = bytearray()
-    ip = 0
-    op = 0
-    try:
-        while ip < n:
-            ctrl = src[ip]
-            ip += 1
-            if ctrl < 32:  # literal run of ctrl + 1 bytes
-                end = ip + ctrl + 1
-                if end > n:
-                    raise ValueError(f"literal run past the end of the stream at byte {ip}")
-                out += src[ip:end]
-                op += end - ip
-                ip = end
-                continue
-            length = ctrl >> 5
-            if length == 7:
-                length += src[ip]
-                ip += 1
-            length += 2
-            ref = op - ((ctrl & 0x1F) << 8) - src[ip] - 1
-            ip += 1
-            if ref < 0:
-                raise ValueError(f"back reference before the start of the output at byte {ip}")
-            if ref + length <= op:
-                out += out[ref : ref + length]
-            else:  # overlapping copy: the pattern repeats
-                pattern = out[ref:op]
-                out += (pattern * (length // len(pattern) + 1))[:length]
-            op += length
-            if op > out_len:
-                break
-    except IndexError as e:
-        raise ValueError("LZF stream ends inside a back reference") from e
-    if op != out_len:
-        raise ValueError(f"LZF stream decompresses to {op} bytes, {out_len} expected")
+    if not data:
+        return b""
+    out = lzf.compress(data, len(data) + len(data) // 31 + 16)  # liblzf's worst case fits
+    if out is None:  # pragma: no cover - the bound above is liblzf's own
+        raise ValueError(f"LZF could not compress {len(data)} bytes")
     return bytes(out)
-
-
-_LZF_OFFSETS = (1, 2, 4, 8, 12, 16, 24)
-_LZF_MAX_REF = 264
-_LZF_MAX_LIT = 32
-_LZF_MIN_REF = 3
-
-
-def lzf_compress_py(data: bytes) -> bytes:
-    """LZF compressor, greedy over a fixed set of back-reference distances, numpy-assisted.
-
-    Looks for repeats at distances of 1 to 24 bytes (runs of equal bytes, repeated values
-    of 2, 4 and 8-byte fields), which is where PCD columns compress; liblzf's hash search
-    finds more, but any LZF decoder reads this stream.
-    """
-    a = np.frombuffer(bytes(data), dtype=np.uint8)
-    starts, ends, offs = _choose_matches(_match_intervals(a))
-    return _assemble(a, starts, ends, offs)
-
-
-def _match_intervals(a: NDArray[np.uint8]) -> NDArray[np.int64]:
-    """(m, 3) [start, end, distance] of every run of >= 3 bytes equal to those d before."""
-    n = a.size
-    found = []
-    for d in _LZF_OFFSETS:
-        if d >= n:
-            break
-        eq = np.zeros(n + 2, dtype=np.int8)
-        eq[d + 1 : n + 1] = a[d:] == a[:-d]
-        edges = np.flatnonzero(np.diff(eq))
-        s, e = edges[0::2], edges[1::2]
-        keep = e - s >= _LZF_MIN_REF
-        found.append(np.stack([s[keep], e[keep], np.full(int(keep.sum()), d)], axis=1))
-    if not found:
-        return np.zeros((0, 3), dtype=np.int64)
-    iv = np.concatenate(found).astype(np.int64)
-    iv = iv[np.lexsort((iv[:, 0] - iv[:, 1], iv[:, 0]))]  # by start, longest first
-    # drop intervals inside an earlier one: the greedy pass would skip them anyway
-    reach = np.maximum.accumulate(iv[:, 1])
-    keep = np.ones(len(iv), dtype=bool)
-    keep[1:] = iv[1:, 1] > reach[:-1]
-    return iv[keep]
-
-
-def _choose_matches(iv: NDArray[np.int64]) -> tuple[list[int], list[int], list[int]]:
-    """Greedy non-overlapping matches, split to the LZF maximum length."""
-    starts: list[int] = []
-    ends: list[int] = []
-    offs: list[int] = []
-    cur = 0
-    for s, e, d in iv.tolist():
-        if e <= cur + 2:
-            continue
-        s = max(s, cur)
-        while e - s >= _LZF_MIN_REF:
-            stop = min(e, s + _LZF_MAX_REF)
-            starts.append(s)
-            ends.append(stop)
-            offs.append(d)
-            s = stop
-        cur = s
-    return starts, ends, offs
-
-
-def _assemble(a: NDArray[np.uint8], starts: list, ends: list, offs: list) -> bytes:
-    """Write literal runs and back references as LZF tokens (vectorised)."""
-    n = a.size
-    m_start = np.asarray(starts, dtype=np.int64)
-    m_end = np.asarray(ends, dtype=np.int64)
-    m_len = m_end - m_start
-    off = np.asarray(offs, dtype=np.int64) - 1
-    lit_start = np.concatenate([[0], m_end])  # literal run k precedes match k
-    lit_len = np.concatenate([m_start, [n]]) - lit_start
-    n_chunks = -(-lit_len // _LZF_MAX_LIT)
-    ref_bytes = np.concatenate([np.where(m_len < 9, 2, 3), [0]])
-    token_size = lit_len + n_chunks + ref_bytes
-    base = np.concatenate([[0], np.cumsum(token_size)[:-1]])
-    out = np.zeros(int(token_size.sum()), dtype=np.uint8)
-    # literal chunk headers and bytes
-    k = np.repeat(np.arange(lit_len.size), n_chunks)
-    c = np.arange(k.size) - np.repeat(np.cumsum(n_chunks) - n_chunks, n_chunks)
-    out[base[k] + c * (_LZF_MAX_LIT + 1)] = (
-        np.minimum(_LZF_MAX_LIT, lit_len[k] - c * _LZF_MAX_LIT) - 1
-    )
-    kb = np.repeat(np.arange(lit_len.size), lit_len)
-    q = np.arange(kb.size) - np.repeat(np.cumsum(lit_len) - lit_len, lit_len)
-    out[base[kb] + q + q // _LZF_MAX_LIT + 1] = a[lit_start[kb] + q]
-    # back references
-    pos = (base + lit_len + n_chunks)[:-1]
-    short = m_len < 9
-    out[pos[short]] = ((m_len[short] - 2) << 5) | (off[short] >> 8)
-    out[pos[short] + 1] = off[short] & 0xFF
-    long_ = ~short
-    out[pos[long_]] = (7 << 5) | (off[long_] >> 8)
-    out[pos[long_] + 1] = m_len[long_] - 9
-    out[pos[long_] + 2] = off[long_] & 0xFF
-    return out.tobytes()
