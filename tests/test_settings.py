@@ -102,6 +102,21 @@ def test_get_settings_is_cached(monkeypatch: pytest.MonkeyPatch) -> None:
         get_settings.cache_clear()
 
 
+def test_the_workers_cache_has_one_source(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """OSDAR_AR_CACHE_DIR is read by Settings only; the render-setup cache follows it."""
+    from worker.augmentation.pool import default_setup_cache
+
+    monkeypatch.setenv("OSDAR_AR_DATA_DIR", str(tmp_path / "data"))
+    get_settings.cache_clear()
+    try:
+        assert default_setup_cache() == tmp_path / "data" / "cache" / "render_setup"
+        monkeypatch.setenv("OSDAR_AR_CACHE_DIR", str(tmp_path / "c"))
+        get_settings.cache_clear()
+        assert default_setup_cache() == tmp_path / "c" / "render_setup"
+    finally:
+        get_settings.cache_clear()
+
+
 def test_celery_side_agrees_with_the_catalog() -> None:
     """The names the API validates against are the pipeline's own."""
     from osdar_platform.catalog import STRATEGIES

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from geometry import camera as cam_mod
 from geometry.camera import CameraModel
+from osdar_platform.settings import get_settings
 from worker.augmentation.frame import ChunkResult, augment_frames, camera_renderer
 from worker.augmentation.plan import Plan
 
@@ -47,11 +48,11 @@ def pool_context() -> Any:
 
 
 def default_setup_cache() -> Path:
-    """Where camera render setups are cached: ``$OSDAR_AR_CACHE_DIR/../render_setup``
-    or ``~/.cache/osdar-ar/render_setup``."""
-    env = os.environ.get("OSDAR_AR_CACHE_DIR")
-    base = Path(env).parent if env else Path.home() / ".cache/osdar-ar"
-    return base / "render_setup"
+    """Where camera render setups are cached: ``render_setup`` in the workers' cache
+    (``Settings.cache_dir``: ``$OSDAR_AR_CACHE_DIR``, default ``<data_dir>/cache``)."""
+    cache_dir = get_settings().cache_dir
+    assert cache_dir is not None  # Settings._derived fills it
+    return cache_dir / "render_setup"
 
 
 def load_render_setup(cam: CameraModel, cache_dir: str | Path | None) -> None:
