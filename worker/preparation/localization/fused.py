@@ -105,6 +105,10 @@ class Sigmas:
     #: KISS-ICP's 6; at 0.2 m a 3 m GNSS jump leaked into the poses).
     ins_p: float = 0.1
     ins_r: float = 0.03 * DEG
+    #: The INS velocity as a step measurement (:func:`_velocity_steps`), its sigma bounds
+    #: (m/s).
+    use_ins_velocity: bool = True
+    ins_v_bounds: tuple[float, float] = (0.005, 0.05)
     #: Estimate the INS attitude's white noise per sequence (:func:`ins_attitude_noise`)
     #: instead of ``ins_r``, within these bounds (rad).
     ins_r_from_data: bool = True
@@ -200,6 +204,10 @@ class Problem:
     bias_sigma: F64  # (6,) prior sigmas of a knot's size (attitude rad, position m)
     bias_step_sigma: F64  # (6,) prior sigmas of its change between knots
     ground: dict | None = None  # ground pairs: k, j (P,), T_k_j (P, 4, 4), w (P, 3)
+    #: INS velocity steps: k (S,) earlier frames, d (S,) the step's displacement along
+    #: the earlier frame's forward axis from the INS velocity, w (S,) 1/sigma
+    #: (:func:`_velocity_steps`)
+    vel: dict | None = None
     #: Variance factors of the measurement blocks (:data:`SCALED_BLOCKS`), per component:
     #: each block's sigmas are multiplied by these (:func:`variance_factors`).
     scale: dict[str, F64] = field(default_factory=dict)
@@ -381,6 +389,11 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
         E_r = _log_rotation(MRt @ np.swapaxes(Rk, 1, 2) @ Rj)
         gr = np.column_stack([E_t[:, 2], E_r[:, 0], E_r[:, 1]]) * g["w"] / pb.s("ground")
         out.append(gr.ravel())
+    # INS velocity: the displacement over each step
+    if pb.vel is not None:
+        kv = pb.vel["k"]
+        along = np.einsum("ni,ni->n", R[kv][:, :, 0], p[kv + 1] - p[kv])
+        out.append((along - pb.vel["d"]) * pb.vel["w"] / pb.s("ins_v"))
     # smoothness
     if pb.n >= 3:
         a_world = p[:-2] - 2.0 * p[1:-1] + p[2:]
@@ -476,6 +489,10 @@ def sparsity(pb: Problem) -> csc_matrix:
             for _ in range(3):
                 rows.append((r, frame_cols(int(k)) + frame_cols(int(j))))
                 r += 1
+    if pb.vel is not None:
+        for k in pb.vel["k"]:
+            rows.append((r, frame_cols(int(k)) + frame_cols(int(k) + 1)))
+            r += 1
     if n >= 3:
         for _ in range(2):  # position and rotation smoothness
             for k in range(n - 2):
@@ -661,6 +678,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         bias_sigma=bias_sigma,
         bias_step_sigma=bias_step,
         ground=ground,
+        vel=_velocity_steps(inp, ins, health, sig) if n >= 2 else None,
         zupt=zupt,
         ins_r_share=_ins_attitude_factors(inp, ins, k, ground, health, sig),
     )
@@ -712,6 +730,47 @@ def ins_attitude_noise(R_ins: F64, ground: dict) -> F64 | None:
 
 #: Fewest lag-1 ground pairs for :func:`ins_attitude_noise`.
 MIN_NOISE_PAIRS = 5
+
+
+def _velocity_steps(
+    inp: LocalizationInput, ins: InsFrames, health: Health, sig: Sigmas
+) -> dict | None:
+    """The INS velocity as a measurement of each step's displacement along the track.
+
+    The velocity is what an INS measures best (cm/s, Doppler-aided, immune to GNSS jumps):
+    over a 0.1 s step it fixes the along-track displacement to millimetres, where lidar
+    odometry degenerates on long straights and lags on slow trains. Only its forward
+    component is used (signed: a reversing train): its direction, at a slow train's speed,
+    is off by tenths of a degree and would turn the poses. Sigma: the
+    INSSTDEV velocity stdev the INS reports (median per axis, within ``ins_v_bounds``),
+    else the bounds' upper end; the variance factors then correct it from the residuals.
+    Steps whose frames lack an INS record of their own are left out.
+    """
+    if not sig.use_ins_velocity:
+        return None
+    v = ins.v_world
+    if len(v) < 2 or not np.any(np.linalg.norm(v, axis=1) > 0):
+        return None
+    times = np.asarray(inp.times, dtype=np.float64)
+    dt = np.diff(times)
+    k = np.flatnonzero(ins.covered[:-1] & ins.covered[1:] & (dt > 0)).astype(np.int64)
+    if len(k) == 0:
+        return None
+    lo, hi = sig.ins_v_bounds
+    sigma_v = hi
+    try:
+        sd = inp.sequence.ins_stdev()
+        cols = [sd.east_velocity_stdev, sd.north_velocity_stdev, sd.up_velocity_stdev]
+        vals = np.concatenate([np.asarray(c, dtype=np.float64) for c in cols])
+        vals = vals[np.isfinite(vals)]
+        if len(vals):
+            sigma_v = float(np.clip(np.median(vals), lo, hi))
+    except (OSError, ValueError, AttributeError) as exc:
+        log.debug("no INS velocity stdev (%s): sigma %.3f m/s", exc, sigma_v)
+    health.metrics["fused_ins_velocity_sigma_mps"] = sigma_v
+    forward = ins.T_world_base[k, :3, 0]
+    d = np.einsum("ni,ni->n", forward, 0.5 * (v[k] + v[k + 1])) * dt[k]
+    return {"k": k, "d": d, "w": 1.0 / (sigma_v * dt[k])}
 
 
 def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> dict | None:
@@ -964,7 +1023,9 @@ def misalignment(x: F64, n: int) -> InsToLidar:
 
 #: Measurement blocks whose sigmas are scaled to their own residuals, with their component
 #: count (residuals are stacked as (rows, components)), in :func:`residuals`' order.
-SCALED_BLOCKS = ("odo_t", "odo_r", "ins_p", "ins_r", "rail_lat", "rail_vert", "rail_r", "ground")
+SCALED_BLOCKS = (
+    "odo_t", "odo_r", "ins_p", "ins_r", "rail_lat", "rail_vert", "rail_r", "ground", "ins_v",
+)  # fmt: skip
 #: Median of a chi-square variable with one degree of freedom: a robust variance factor
 #: of normalised residuals is ``median(r^2) / CHI2_1_MEDIAN``.
 CHI2_1_MEDIAN = 0.454936
@@ -983,6 +1044,8 @@ def measurement_blocks(pb: Problem, x: F64) -> dict[str, F64]:
         sizes += [("rail_lat", n, 1), ("rail_vert", n, 1), ("rail_r", n, 3)]
     if pb.ground is not None:
         sizes.append(("ground", len(pb.ground["k"]), 3))
+    if pb.vel is not None:
+        sizes.append(("ins_v", len(pb.vel["k"]), 1))
     out, i = {}, 0
     for name, rows, comps in sizes:
         out[name] = r[i : i + rows * comps].reshape(rows, comps)
