@@ -680,7 +680,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         ground=ground,
         vel=_velocity_steps(inp, ins, health, sig) if n >= 2 else None,
         zupt=zupt,
-        ins_r_share=_ins_attitude_factors(inp, ins, k, ground, health, sig),
+        ins_r_share=_ins_attitude_factors(inp, ins, k, ground, health, sig, bias_step),
     )
 
 
@@ -691,20 +691,28 @@ def _ins_attitude_factors(
     ground: dict | None,
     health: Health,
     sig: Sigmas,
+    bias_step: F64 | None = None,
 ) -> F64 | None:
-    """(m, 3) factors on ``sig.ins_r`` per INS record and axis (roll, pitch, heading)."""
-    f = np.ones((len(k), 3))
+    """(m, 3) factors on ``sig.ins_r`` per INS record and axis (roll, pitch, heading).
+
+    The record's white noise (:func:`ins_attitude_noise`, else ``ins_r``), and, with
+    ``ins_r_share``, what the INS's wander adds between the bias knots: a random walk of
+    ``q`` per knot strays from its linear interpolation by q / sqrt(6) RMS (a Brownian
+    bridge), which the piecewise-linear bias cannot follow; ``bias_step`` (6,) holds q
+    about the world axes (horizontal, horizontal, vertical ~ roll, pitch, heading).
+    """
+    white = np.full(3, sig.ins_r)
     if sig.ins_r_from_data and ground is not None:
         noise = ins_attitude_noise(ins.T_world_base[:, :3, :3], ground)
         if noise is not None:
             lo, hi = sig.ins_r_bounds
-            est = np.clip(noise, lo, hi)
-            f *= (est / sig.ins_r)[None, :]
-            for axis, v in zip(("roll", "pitch", "heading"), est, strict=True):
+            white = np.clip(noise, lo, hi)
+            for axis, v in zip(("roll", "pitch", "heading"), white, strict=True):
                 health.metrics[f"fused_ins_attitude_noise_{axis}_deg"] = float(np.degrees(v))
-    if sig.ins_r_share:
-        f *= np.sqrt(_frames_sharing(np.asarray(inp.times)[k], sig.bias_knot_s))[:, None]
-    return f
+    sigma = white
+    if sig.ins_r_share and bias_step is not None:
+        sigma = np.sqrt(white**2 + bias_step[:3] ** 2 / 6.0)
+    return np.tile(sigma / sig.ins_r, (len(k), 1))
 
 
 def ins_attitude_noise(R_ins: F64, ground: dict) -> F64 | None:
