@@ -68,7 +68,7 @@ from worker.preparation.localization.common import (
 from worker.preparation.localization.ground_pairs import LAGS as GROUND_LAGS
 from worker.preparation.localization.ground_pairs import ground_pairs
 from worker.preparation.localization.hat import hat_variances
-from worker.preparation.localization.ins_wander import ins_wander, robust_rms
+from worker.preparation.localization.ins_wander import ins_wander
 from worker.preparation.localization.odometry import (
     degenerate_frames,
     is_degenerate,
@@ -109,10 +109,6 @@ class Sigmas:
     #: (m/s).
     use_ins_velocity: bool = True
     ins_v_bounds: tuple[float, float] = (0.005, 0.05)
-    #: Estimate the INS attitude's white noise per sequence (:func:`ins_attitude_noise`)
-    #: instead of ``ins_r``, within these bounds (rad).
-    ins_r_from_data: bool = True
-    ins_r_bounds: tuple[float, float] = (0.003 * DEG, 0.1 * DEG)
     #: Scale the INS attitude sigma by sqrt(records within one knot spacing).
     ins_r_share: bool = True
     #: The base origin on the fitted centreline (m). Loose: the centreline is fitted from a
@@ -680,63 +676,27 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         ground=ground,
         vel=_velocity_steps(inp, ins, health, sig) if n >= 2 else None,
         zupt=zupt,
-        ins_r_share=_ins_attitude_factors(inp, ins, k, ground, health, sig, bias_step),
+        ins_r_share=_ins_attitude_factors(k, sig, bias_step),
     )
 
 
-def _ins_attitude_factors(
-    inp: LocalizationInput,
-    ins: InsFrames,
-    k: NDArray[np.int64],
-    ground: dict | None,
-    health: Health,
-    sig: Sigmas,
-    bias_step: F64 | None = None,
-) -> F64 | None:
+def _ins_attitude_factors(k: NDArray[np.int64], sig: Sigmas, bias_step: F64 | None) -> F64:
     """(m, 3) factors on ``sig.ins_r`` per INS record and axis (roll, pitch, heading).
 
-    The record's white noise (:func:`ins_attitude_noise`, else ``ins_r``), and, with
-    ``ins_r_share``, what the INS's wander adds between the bias knots: a random walk of
+    The record's white noise ``ins_r`` and, with ``ins_r_share``, what the INS's wander
+    adds between the bias knots: a random walk of
     ``q`` per knot strays from its linear interpolation by q / sqrt(6) RMS (a Brownian
     bridge), which the piecewise-linear bias cannot follow; ``bias_step`` (6,) holds q
     about the world axes (horizontal, horizontal, vertical ~ roll, pitch, heading).
     """
     white = np.full(3, sig.ins_r)
-    if sig.ins_r_from_data and ground is not None:
-        noise = ins_attitude_noise(ins.T_world_base[:, :3, :3], ground)
-        if noise is not None:
-            lo, hi = sig.ins_r_bounds
-            white = np.clip(noise, lo, hi)
-            for axis, v in zip(("roll", "pitch", "heading"), white, strict=True):
-                health.metrics[f"fused_ins_attitude_noise_{axis}_deg"] = float(np.degrees(v))
     sigma = white
     if sig.ins_r_share and bias_step is not None:
         sigma = np.sqrt(white**2 + bias_step[:3] ** 2 / 6.0)
     return np.tile(sigma / sig.ins_r, (len(k), 1))
 
 
-def ins_attitude_noise(R_ins: F64, ground: dict) -> F64 | None:
-    """(3,) white noise (rad) of the INS attitude per record about (roll, pitch, heading),
-    or None with fewer than MIN_NOISE_PAIRS lag-1 ground pairs.
-
-    The ground pairs' relative roll and pitch between consecutive frames are good to a few
-    thousandths of a degree; the INS's relative attitude differs from them by its noise at
-    both records: the robust RMS of the difference over sqrt(2). Heading has no such
-    reference: it takes the larger of the two (an INS's heading is never better aligned
-    than its levelling).
-    """
-    lag1 = (ground["j"] - ground["k"]) == 1
-    if int(np.sum(lag1)) < MIN_NOISE_PAIRS:
-        return None
-    kk, jj = ground["k"][lag1], ground["j"][lag1]
-    rel_ins = np.swapaxes(R_ins[kk], 1, 2) @ R_ins[jj]
-    rel_gnd = ground["T_k_j"][lag1][:, :3, :3]
-    d = _log_rotation(np.swapaxes(rel_gnd, 1, 2) @ rel_ins)
-    rp = robust_rms(d[:, :2]) / np.sqrt(2.0)
-    return np.array([rp[0], rp[1], max(rp[0], rp[1])])
-
-
-#: Fewest lag-1 ground pairs for :func:`ins_attitude_noise`.
+#: Fewest ground pairs of the longest lag for :func:`_ins_level_wander`.
 MIN_NOISE_PAIRS = 5
 
 
