@@ -137,7 +137,8 @@ class CameraModel:
             raise ValueError(f"stream {name}: camera_matrix must have 12 values, got {m.size}")
         if dist.size < 5:
             dist = np.concatenate([dist, np.zeros(5 - dist.size)])
-        return cls(name, width, height, m.reshape(3, 4)[:, :3], dist[:5], T_base_cam)
+        T = np.asarray(T_base_cam, dtype=np.float64)
+        return cls(name, width, height, m.reshape(3, 4)[:, :3], dist[:5], T)
 
     def scaled(self, s: float) -> CameraModel:
         """The same camera for an image resized by ``s`` (sizes rounded), see :meth:`resized`."""
@@ -424,10 +425,12 @@ def _newton_full(xy: F64, xy_d: F64, dist: F64) -> F64:
     return xy
 
 
-_SETUP_CACHE: dict[tuple, RenderSetup] = {}
+#: (width, height, K bytes, dist bytes, margin) of a camera's render setup
+_CameraKey = tuple[int, int, bytes, bytes, float]
+_SETUP_CACHE: dict[_CameraKey, RenderSetup] = {}
 
 
-def _camera_key(cam: CameraModel, margin: float) -> tuple:
+def _camera_key(cam: CameraModel, margin: float) -> _CameraKey:
     return (cam.width, cam.height, cam.K.tobytes(), cam.dist.tobytes(), margin)
 
 

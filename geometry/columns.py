@@ -9,23 +9,25 @@ millions of points, so its hot paths use these helpers. The results are exactly 
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
 
-def column_min(a: NDArray) -> NDArray:
+def column_min(a: NDArray[Any]) -> NDArray[Any]:
     """(k,) smallest value of each column of (n, k) ``a`` (n >= 1)."""
     return np.array([a[:, i].min() for i in range(a.shape[1])], dtype=a.dtype)
 
 
-def column_max(a: NDArray) -> NDArray:
+def column_max(a: NDArray[Any]) -> NDArray[Any]:
     """(k,) largest value of each column of (n, k) ``a`` (n >= 1)."""
     return np.array([a[:, i].max() for i in range(a.shape[1])], dtype=a.dtype)
 
 
-def finite_rows(a: NDArray) -> NDArray[np.bool_]:
+def finite_rows(a: NDArray[Any]) -> NDArray[np.bool_]:
     """(n,) whether every value of each row of (n, k) ``a`` is finite."""
-    out = np.isfinite(a[:, 0])
+    out: NDArray[np.bool_] = np.isfinite(a[:, 0])
     for i in range(1, a.shape[1]):
         out &= np.isfinite(a[:, i])
     return out

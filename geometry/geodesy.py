@@ -146,14 +146,14 @@ class WorldFrame:
     @cached_property
     def origin_ecef(self) -> F64:
         """(3,) ECEF position of the origin (m), read-only."""
-        p = geodetic_to_ecef(self.latitude_deg, self.longitude_deg, self.height_m)[0]
+        p: F64 = geodetic_to_ecef(self.latitude_deg, self.longitude_deg, self.height_m)[0]
         p.setflags(write=False)
         return p
 
     @cached_property
     def R_ecef_world(self) -> F64:
         """(3, 3) rotation of the world axes into ECEF, read-only."""
-        R = R_ecef_enu(self.latitude_deg, self.longitude_deg)[0]
+        R: F64 = R_ecef_enu(self.latitude_deg, self.longitude_deg)[0]
         R.setflags(write=False)
         return R
 
@@ -193,7 +193,8 @@ class WorldFrame:
         -------
         (n, 3, 3) float64.
         """
-        return np.einsum("ji,njk->nik", self.R_ecef_world, R_ecef_enu(lat_deg, lon_deg))
+        R_world_enu: F64 = np.einsum("ji,njk->nik", self.R_ecef_world, R_ecef_enu(lat_deg, lon_deg))
+        return R_world_enu
 
     def T_world_other(self, other: WorldFrame) -> F64:
         """(4, 4) pose of another world frame in this one (``p_this = T @ p_other``), exact."""

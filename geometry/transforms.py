@@ -8,6 +8,8 @@ Conventions (see ../shared/design/ARCHITECTURE.md):
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
@@ -34,17 +36,18 @@ def normalize_quat(q_xyzw: ArrayLike) -> F64:
         raise ValueError(f"quaternion must have 4 components [x, y, z, w], got shape {q.shape}")
     if not np.all(np.isfinite(q)):
         raise ValueError("quaternion has non-finite components")
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    norm: F64 = np.linalg.norm(q, axis=-1, keepdims=True)
     if np.any(norm < _MIN_QUAT_NORM):
         raise ValueError(f"quaternion norm {float(norm.min()):.3g} is too small to normalise")
     q = q / norm
-    sign = np.where(q[..., 3:4] < 0.0, -1.0, 1.0)
+    sign: F64 = np.where(q[..., 3:4] < 0.0, -1.0, 1.0)
     return q * sign
 
 
 def quat_to_matrix(q_xyzw: ArrayLike) -> F64:
     """(4,) or (n, 4) quaternion [x, y, z, w] -> (3, 3) or (n, 3, 3) rotation matrix."""
-    return Rotation.from_quat(normalize_quat(q_xyzw)).as_matrix()
+    R: F64 = Rotation.from_quat(normalize_quat(q_xyzw)).as_matrix()
+    return R
 
 
 def matrix_to_quat(R: ArrayLike) -> F64:
@@ -65,7 +68,7 @@ def pose_to_T(translation: ArrayLike, q_xyzw: ArrayLike) -> F64:
     return make_T(quat_to_matrix(q_xyzw), translation)
 
 
-def openlabel_pose_to_T(pose: dict) -> F64:
+def openlabel_pose_to_T(pose: dict[str, Any]) -> F64:
     """OpenLABEL ``pose_wrt_parent`` -> (4, 4): ``{"translation", "quaternion" [x,y,z,w]}``
     (quaternion normalised) or ``{"matrix4x4": 16 values, row-major}``.
 
@@ -120,6 +123,7 @@ def transform_points(T_a_b: ArrayLike, p_b: ArrayLike) -> F64:
     return out
 
 
-def rotation_angle(R: ArrayLike) -> F64:
-    """Angle (rad) of rotation matrices (3, 3) or (n, 3, 3), robust near 0 and pi."""
+def rotation_angle(R: ArrayLike) -> F64 | np.float64:
+    """Angle (rad) of rotation matrices (3, 3) (a scalar) or (n, 3, 3) ((n,)), robust near
+    0 and pi."""
     return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).magnitude()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -31,7 +33,7 @@ def voxel_keep(xyz: F64, voxel_size: float) -> NDArray[np.int64]:
     return np.sort(first)
 
 
-def unique_first(keys: NDArray) -> tuple[NDArray, NDArray[np.int64]]:
+def unique_first(keys: NDArray[Any]) -> tuple[NDArray[Any], NDArray[np.int64]]:
     """Sorted unique values of a 1-D array and the index of each one's first occurrence.
 
     ``np.unique(keys, return_index=True)`` for int64 keys, about 4 times faster: a quicksort

@@ -25,7 +25,7 @@ import tarfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import TYPE_CHECKING, BinaryIO
+from typing import IO, TYPE_CHECKING, BinaryIO
 
 if TYPE_CHECKING:
     from osdar_platform.settings import Settings
@@ -194,7 +194,7 @@ def _extract_tar(archive: Path, dest: Path, limits: ArchiveLimits) -> ExtractRes
                     raise UnsafeArchive(f"member {m.name!r}: duplicate name")
                 seen.add(rel)
                 budget.add(m.size, m.name)  # tarfile writes exactly m.size bytes
-            tf.members.clear()  # keep memory flat on huge archives
+            _forget_members(tf)  # keep memory flat on huge archives
     # Pass 2 extracts with filter="data" (PEP 706) and the same checks again.
     with tarfile.open(archive, "r:*") as tf:
         for m in tf:
@@ -205,8 +205,15 @@ def _extract_tar(archive: Path, dest: Path, limits: ArchiveLimits) -> ExtractRes
                 tf.extract(m, dest, filter="data")
             except tarfile.FilterError as exc:
                 raise UnsafeArchive(f"member {m.name!r}: {exc}") from exc
-            tf.members.clear()
+            _forget_members(tf)
     return ExtractResult("tar", dest, budget.members, budget.total)
+
+
+def _forget_members(tf: tarfile.TarFile) -> None:
+    """Drop the members ``tf`` has read so far: iterating a TarFile appends each one to its
+    ``members`` list (an attribute typeshed does not declare)."""
+    members: list[tarfile.TarInfo] = vars(tf)["members"]
+    members.clear()
 
 
 def _zip_mode(info: zipfile.ZipInfo) -> int:
@@ -264,7 +271,7 @@ def _extract_zip(archive: Path, dest: Path, limits: ArchiveLimits) -> ExtractRes
 
 
 def _copy_counted(
-    src: BinaryIO,
+    src: IO[bytes],
     out: BinaryIO,
     info: zipfile.ZipInfo,
     budget: _Budget,

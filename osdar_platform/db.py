@@ -12,9 +12,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import Engine, create_engine, event
+from sqlalchemy import CursorResult, Engine, Update, create_engine, event
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -89,3 +89,12 @@ def session_scope(settings: Settings | None = None) -> Iterator[Session]:
         raise
     finally:
         session.close()
+
+
+def updated_rows(session: Session, statement: Update) -> int:
+    """Execute an UPDATE in ``session``; the number of rows it matched.
+
+    ``Session.execute`` is typed as returning a ``Result``; an UPDATE's is a
+    ``CursorResult``, the one that carries ``rowcount``.
+    """
+    return cast(CursorResult[Any], session.execute(statement)).rowcount

@@ -2,17 +2,17 @@
 
 Every field reads ``OSDAR_AR_<FIELD>`` from the environment; the deployment-level ones also
 read their plain names (``DATABASE_URL``, ``BROKER_URL``, ``STORE_URL``,
-``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_KEY``, ``S3_ENDPOINT_URL``). Derived defaults are
-filled in one place (:meth:`Settings._derived`): everything lives under ``data_dir`` unless
-told otherwise, so the embedded default (SQLite, a SQLite broker, a file-system store) needs
-no server. ``environment="prod"`` refuses the default secret and SQLite.
+``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_KEY``, ``S3_ENDPOINT_URL``). Derived defaults
+(the folders' default factories, the URLs in :meth:`Settings._derived`) put everything
+under ``data_dir`` unless told otherwise, so the embedded default (SQLite, a SQLite broker,
+a file-system store) needs no server. ``environment="prod"`` refuses the default secret and SQLite.
 """
 
 from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import AliasChoices, Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -30,6 +30,11 @@ def _env(name: str, *plain: str) -> AliasChoices:
     return AliasChoices(f"OSDAR_AR_{name.upper()}", *plain)
 
 
+def _under_data_dir(validated: dict[str, Any], name: str) -> Path:
+    """Default of a folder field: ``name`` under the (validated, declared earlier) data_dir."""
+    return Path(validated["data_dir"]) / name
+
+
 class Settings(BaseSettings):
     """Configuration of the API and the workers (one instance per process)."""
 
@@ -45,8 +50,10 @@ class Settings(BaseSettings):
     database_url: str | None = Field(None, validation_alias=_env("database_url", "DATABASE_URL"))
     broker_url: str | None = Field(None, validation_alias=_env("broker_url", "BROKER_URL"))
     store_url: str | None = Field(None, validation_alias=_env("store_url", "STORE_URL"))
-    cache_dir: Path | None = None  # preparation cache of the workers
-    sequences_dir: Path | None = None  # extracted sequence uploads (workers must read it)
+    #: The workers' cache: prepared sequences, job attempts, fetched sequences, render setups.
+    cache_dir: Path = Field(default_factory=lambda data: _under_data_dir(data, "cache"))
+    #: Extracted sequence uploads (the workers must read it).
+    sequences_dir: Path = Field(default_factory=lambda data: _under_data_dir(data, "sequences"))
     #: Folders under which a registered sequence path must lie; empty = anywhere (dev only).
     sequence_roots: list[Path] = Field(default_factory=list)
 
@@ -115,10 +122,6 @@ class Settings(BaseSettings):
             self.broker_url = f"sqla+sqlite:///{data}/broker.db"
         if self.store_url is None:
             self.store_url = f"file://{data.resolve()}/store"
-        if self.cache_dir is None:
-            self.cache_dir = data / "cache"
-        if self.sequences_dir is None:
-            self.sequences_dir = data / "sequences"
         if not self.store_url.startswith(("file://", "s3://")):
             raise ValueError(f"store_url {self.store_url!r}: expected file://PATH or s3://BUCKET")
         if self.task_soft_time_limit_s >= self.task_time_limit_s:

@@ -35,7 +35,8 @@ class Dispatcher:
 
 
 def _settings(request: Request) -> Settings:
-    return request.app.state.settings
+    settings: Settings = request.app.state.settings
+    return settings
 
 
 def _session(request: Request) -> Iterator[Session]:
@@ -44,11 +45,13 @@ def _session(request: Request) -> Iterator[Session]:
 
 
 def _store(request: Request) -> ObjectStore:
-    return request.app.state.store
+    store: ObjectStore = request.app.state.store
+    return store
 
 
 def _dispatcher(request: Request) -> Dispatcher:
-    return request.app.state.dispatcher
+    dispatcher: Dispatcher = request.app.state.dispatcher
+    return dispatcher
 
 
 SettingsDep = Annotated[Settings, Depends(_settings)]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from typing import Any, Literal
 
 from fastapi.responses import Response, StreamingResponse
 
@@ -12,7 +13,7 @@ from service.errors import NotFound
 _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
 
 
-def parse_range(header: str | None, size: int) -> tuple[int, int] | str | None:
+def parse_range(header: str | None, size: int) -> tuple[int, int] | Literal["unsatisfiable"] | None:
     """(start, end inclusive), None (serve whole), or "unsatisfiable"."""
     if not header:
         return None
@@ -50,12 +51,12 @@ def stream_object(
     if filename:
         headers["Content-Disposition"] = f'attachment; filename="{filename}"'
     rng = parse_range(range_header, size)
-    if rng == "unsatisfiable":
+    if isinstance(rng, str):  # "unsatisfiable"
         return Response(status_code=416, headers={**headers, "Content-Range": f"bytes */{size}"})
     if rng is None:
         headers["Content-Length"] = str(size)
         return StreamingResponse(store.open_read(key), media_type=media_type, headers=headers)
-    start, end = rng  # type: ignore[misc]
+    start, end = rng
     headers["Content-Range"] = f"bytes {start}-{end}/{size}"
     headers["Content-Length"] = str(end - start + 1)
     return StreamingResponse(
@@ -64,7 +65,7 @@ def stream_object(
 
 
 #: OpenAPI description of a streamed download.
-def download_responses(media_type: str) -> dict[int | str, dict]:
+def download_responses(media_type: str) -> dict[int | str, dict[str, Any]]:
     return {
         200: {"content": {media_type: {"schema": {"type": "string", "format": "binary"}}}},
         206: {

@@ -50,9 +50,7 @@ def pool_context() -> Any:
 def default_setup_cache() -> Path:
     """Where camera render setups are cached: ``render_setup`` in the workers' cache
     (``Settings.cache_dir``: ``$OSDAR_AR_CACHE_DIR``, default ``<data_dir>/cache``)."""
-    cache_dir = get_settings().cache_dir
-    assert cache_dir is not None  # Settings._derived fills it
-    return cache_dir / "render_setup"
+    return get_settings().cache_dir / "render_setup"
 
 
 def load_render_setup(cam: CameraModel, cache_dir: str | Path | None) -> None:

@@ -50,7 +50,8 @@ def inspect_sequence(folder: str | Path) -> dict[str, Any]:
             ) from exc
     summary["frame_indices"] = frame_indices
     summary["warnings"] = sorted({str(w.message) for w in caught})[:50]
-    return json.loads(json.dumps(summary, default=str))  # plain JSON types only
+    plain: dict[str, Any] = json.loads(json.dumps(summary, default=str))  # JSON types only
+    return plain
 
 
 def inspect_mesh(
@@ -81,6 +82,8 @@ def inspect_mesh(
         raise InspectionError(
             f"{file_type}: could not be read ({type(exc).__name__}: {exc})"
         ) from exc
+    if not isinstance(loaded, trimesh.Trimesh):  # force="mesh" makes one
+        raise InspectionError(f"{file_type}: not a triangle mesh ({type(loaded).__name__})")
     vertices, faces = len(loaded.vertices), len(loaded.faces)
     if vertices == 0 or faces == 0:
         raise InspectionError(f"{file_type}: the mesh has no triangles")

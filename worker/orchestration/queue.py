@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select, update
 
-from osdar_platform.db import get_sessionmaker
+from osdar_platform.db import get_sessionmaker, updated_rows
 from osdar_platform.models import Job, JobEvent, JobState, utcnow
 
 if TYPE_CHECKING:
@@ -40,7 +40,9 @@ def _celery_app(app: Any) -> Any:
     return celery_app
 
 
-def _sessions(settings: Settings | None, sessions: sessionmaker[Session] | None) -> Any:
+def _sessions(
+    settings: Settings | None, sessions: sessionmaker[Session] | None
+) -> sessionmaker[Session]:
     if sessions is not None:
         return sessions
 
@@ -68,11 +70,12 @@ def enqueue_job(
             session.add(JobEvent(job_id=job_id, kind="enqueue_failed", message=str(exc)[:2000]))
         raise
     with make_session.begin() as session:
-        moved = session.execute(
+        moved = updated_rows(
+            session,
             update(Job)
             .where(Job.id == job_id, Job.state == JobState.PENDING)
-            .values(state=JobState.QUEUED, updated_at=utcnow())
-        ).rowcount
+            .values(state=JobState.QUEUED, updated_at=utcnow()),
+        )
         session.add(JobEvent(job_id=job_id, kind="queued" if moved else "sent"))
 
 
@@ -102,11 +105,12 @@ def request_cancel(
         session.execute(
             update(Job).where(Job.id == job_id).values(cancel_requested=True, updated_at=now)
         )
-        moved = session.execute(
+        moved = updated_rows(
+            session,
             update(Job)
             .where(Job.id == job_id, Job.state.in_([JobState.PENDING, JobState.QUEUED]))
-            .values(state=JobState.CANCELLED, finished_at=now, updated_at=now)
-        ).rowcount
+            .values(state=JobState.CANCELLED, finished_at=now, updated_at=now),
+        )
         session.add(
             JobEvent(
                 job_id=job_id,

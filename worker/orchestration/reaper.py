@@ -46,7 +46,7 @@ from typing import Any
 import redis
 from sqlalchemy import select, update
 
-from osdar_platform.db import make_engine, make_sessionmaker
+from osdar_platform.db import make_engine, make_sessionmaker, updated_rows
 from osdar_platform.models import Job, JobEvent, JobState, utcnow
 from osdar_platform.settings import Settings
 from worker.orchestration.celery_app import QUEUE, make_celery
@@ -134,11 +134,12 @@ def _requeue(
             return None  # moved meanwhile (progress, or another reaper)
         if job.deliveries >= settings.max_deliveries:
             reason = f"{POISON_REASON}: {why}"
-            moved = s.execute(
+            moved = updated_rows(
+                s,
                 update(Job)
                 .where(*claim)
-                .values(state=JobState.FAILED, error=reason, finished_at=now, updated_at=now)
-            ).rowcount
+                .values(state=JobState.FAILED, error=reason, finished_at=now, updated_at=now),
+            )
             if moved:
                 s.add(
                     JobEvent(
@@ -152,7 +153,7 @@ def _requeue(
                 return "failed"
             return None
         requeue = {"state": JobState.QUEUED, "stage": "requeued", "updated_at": now}
-        moved = s.execute(update(Job).where(*claim).values(**requeue)).rowcount
+        moved = updated_rows(s, update(Job).where(*claim).values(**requeue))
         if not moved:
             return None
         s.add(

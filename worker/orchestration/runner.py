@@ -148,7 +148,8 @@ class JobRun:
 
     @property
     def spec(self) -> dict[str, Any]:
-        return self.info["spec"]
+        spec: dict[str, Any] = self.info["spec"]
+        return spec
 
 
 def _run(job_id: str, attempt: int | None, settings: Settings | None) -> JobRun:
@@ -319,7 +320,7 @@ def _local_sequence(run: JobRun) -> Path:
     if not seq["content_key"]:
         raise StageError(f"sequence folder {folder} is not readable on this worker")
 
-    base = Path(run.settings.cache_dir) / "sequences" / seq["id"]
+    base = Path(run.settings.cache_dir) / "sequences" / str(seq["id"])
     marker = base / "root.txt"
     with key_lock(base.parent, f"sequence-{seq['id']}"):
         if marker.is_file():
@@ -437,7 +438,8 @@ def _plan(run: JobRun) -> Plan:
             tmp.replace(local)
             return plan
     # Our own workers wrote it into our own store under this attempt's key.
-    return pickle.loads(local.read_bytes())
+    cached: Plan = pickle.loads(local.read_bytes())
+    return cached
 
 
 def _chunk_dir(run: JobRun, index: int) -> Path:
@@ -492,7 +494,8 @@ def augment_chunk(
 
 
 def _output_folder(run: JobRun) -> Path:
-    return run.workdir / "output" / (run.info["sequence"] or {}).get("name", "sequence")
+    name: str = (run.info["sequence"] or {}).get("name", "sequence")
+    return run.workdir / "output" / name
 
 
 def _chunk_results(run: JobRun, chunks: list[dict[str, Any]]) -> list[ChunkResult]:
@@ -709,7 +712,10 @@ def run_job_inline(job_id: str, *, settings: Settings | None = None) -> JobState
     except JobStop as stop:
         log.info("job %s stopped: %s", job_id, stop)
     with session_scope(settings) as s:
-        return JobState(s.scalar(select(Job.state).where(Job.id == job_id)))
+        job_state = s.scalar(select(Job.state).where(Job.id == job_id))
+    if job_state is None:
+        raise ValueError(f"job {job_id}: no such job")
+    return JobState(job_state)
 
 
 __all__ = [

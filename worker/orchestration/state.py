@@ -22,7 +22,7 @@ from typing import Any
 
 from sqlalchemy import case, func, select, update
 
-from osdar_platform.db import session_scope
+from osdar_platform.db import session_scope, updated_rows
 from osdar_platform.models import TERMINAL_STATES, Job, JobEvent, JobState, utcnow
 from osdar_platform.settings import Settings
 
@@ -79,11 +79,12 @@ def mark_running(job_id: str, *, settings: Settings, max_deliveries: int | None 
     limit = max_deliveries if max_deliveries is not None else settings.max_deliveries
     now = utcnow()
     with session_scope(settings) as s:
-        counted = s.execute(
+        counted = updated_rows(
+            s,
             update(Job)
             .where(Job.id == job_id, _not_terminal())
-            .values(deliveries=Job.deliveries + 1, updated_at=now)
-        ).rowcount
+            .values(deliveries=Job.deliveries + 1, updated_at=now),
+        )
         if not counted:
             raise JobSuperseded(f"job {job_id} is gone or finished")
         job = s.execute(
@@ -96,7 +97,8 @@ def mark_running(job_id: str, *, settings: Settings, max_deliveries: int | None 
         mark_cancelled(job_id, settings=settings, attempt=job.attempt)
         raise JobCancelled(job_id)
     with session_scope(settings) as s:
-        moved = s.execute(
+        moved = updated_rows(
+            s,
             update(Job)
             .where(
                 Job.id == job_id,
@@ -111,11 +113,11 @@ def mark_running(job_id: str, *, settings: Settings, max_deliveries: int | None 
                 error=None,
                 started_at=func.coalesce(Job.started_at, now),
                 updated_at=now,
-            )
-        ).rowcount
+            ),
+        )
         if not moved:
             raise JobSuperseded(f"job {job_id} was taken by another delivery")
-        attempt = job.attempt + 1
+        attempt: int = job.attempt + 1
         _event(s, job_id, "attempt_started", attempt, data={"deliveries": job.deliveries})
     return attempt
 
@@ -180,11 +182,12 @@ def set_stage(
     if total is not None:
         values["progress_total"] = total
     with session_scope(settings) as s:
-        moved = s.execute(
+        moved = updated_rows(
+            s,
             update(Job)
             .where(Job.id == job_id, Job.attempt == attempt, Job.state == JobState.RUNNING)
-            .values(**values)
-        ).rowcount
+            .values(**values),
+        )
     return bool(moved)
 
 
@@ -251,7 +254,8 @@ def publish_result(
     """
     now = utcnow()
     with session_scope(settings) as s:
-        won = s.execute(
+        won = updated_rows(
+            s,
             update(Job)
             .where(Job.id == job_id, Job.result_key.is_(None), Job.state == JobState.RUNNING)
             .values(
@@ -262,8 +266,8 @@ def publish_result(
                 progress_done=Job.progress_total,
                 finished_at=now,
                 updated_at=now,
-            )
-        ).rowcount
+            ),
+        )
         if won:
             _event(s, job_id, "succeeded", attempt, data={"result_key": result_key})
         else:
@@ -285,7 +289,8 @@ def mark_failed(
     if attempt is not None:
         conds.append(Job.attempt == attempt)
     with session_scope(settings) as s:
-        moved = s.execute(
+        moved = updated_rows(
+            s,
             update(Job)
             .where(*conds)
             .values(
@@ -293,8 +298,8 @@ def mark_failed(
                 error=reason[:_MAX_ERROR_CHARS],
                 finished_at=now,
                 updated_at=now,
-            )
-        ).rowcount
+            ),
+        )
         if moved:
             at = attempt if attempt is not None else s.scalar(
                 select(Job.attempt).where(Job.id == job_id)
@@ -309,11 +314,12 @@ def mark_cancelled(job_id: str, *, settings: Settings, attempt: int | None = Non
     """CANCELLED unless already terminal."""
     now = utcnow()
     with session_scope(settings) as s:
-        moved = s.execute(
+        moved = updated_rows(
+            s,
             update(Job)
             .where(Job.id == job_id, _not_terminal())
-            .values(state=JobState.CANCELLED, stage="cancelled", finished_at=now, updated_at=now)
-        ).rowcount
+            .values(state=JobState.CANCELLED, stage="cancelled", finished_at=now, updated_at=now),
+        )
         if moved:
             _event(s, job_id, "cancelled", attempt or 0)
     return bool(moved)

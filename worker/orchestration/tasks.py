@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 from celery import Task, chain, chord, shared_task
 from celery.exceptions import Ignore
@@ -47,7 +47,11 @@ TASK_NAMES = (
 )
 
 
-class JobTask(Task):
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+class JobTask(Task[Any, Any]):
     """Every job task: acknowledged late, put back when its worker process dies."""
 
     acks_late = True
@@ -55,7 +59,7 @@ class JobTask(Task):
     ignore_result = True
 
 
-def _stage(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+def _stage(fn: Callable[_P, _R], *args: _P.args, **kwargs: _P.kwargs) -> _R:
     try:
         return fn(*args, **kwargs)
     except JobStop as stop:
@@ -82,7 +86,7 @@ def workflow(app: Any, job_id: str, attempt: int, chunks: list[list[int]]) -> An
 
 
 @shared_task(name=TASK_RUN_JOB, bind=True, base=JobTask)
-def run_job(self: Task, job_id: str) -> None:
+def run_job(self: Task[Any, Any], job_id: str) -> None:
     """Start an attempt (poison jobs are FAILED here) and launch its stages."""
     attempt = _stage(runner.start_job, job_id)
     try:
