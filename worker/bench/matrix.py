@@ -42,6 +42,7 @@ from worker.osdar.sequence import Sequence
 from worker.preparation.centreline import Centreline
 from worker.preparation.config import PrepareConfig
 from worker.preparation.localization import LocalizationResult, run_strategy
+from worker.preparation.localization.auto import judge
 from worker.preparation.prepare import localization_setup
 from worker.preparation.registration import register_clouds
 from worker.synth.generator import SynthConfig, generate
@@ -229,6 +230,7 @@ def _f(x: Any) -> float | None:
 def _health(res: LocalizationResult) -> dict[str, Any]:
     return {
         "ok": bool(res.health.ok),
+        "degraded": list(res.health.degraded),
         "fallback": res.health.fallback,
         "warnings": list(res.health.warnings),
         "chosen": (res.extras or {}).get("chosen"),
@@ -248,6 +250,12 @@ def run_cell(cell: Cell, root: Path, *, keep: bool = False) -> dict[str, Any]:
     setup = localization_setup(seq, config)
     inp = setup.inp
     results = {s: run_strategy(s, inp) for s in STRATEGIES}
+    # every strategy judged against the others' maps, as auto judged its own candidates
+    crisp = {
+        s: results["auto"].health.metrics.get(f"auto_crispness_{s}_m", math.nan)
+        for s in STRATEGIES[:-1]
+    }
+    judge({s: results[s] for s in STRATEGIES[:-1]}, crisp)
     true_world, truth, ego_true = _truth(folder)
     T_true = truth.interpolate(inp.times, max_extrapolation_s=0.2)
     out: dict[str, Any] = {"cell": asdict(cell), "name": cell.name, "strategies": {}}

@@ -71,12 +71,16 @@ class KissProcess:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def send(self, points: F64) -> None:
-        """Queue one frame's (n, 3) base points (n = 0: constant-velocity prediction)."""
+    def send(self, points: F64, prior_t: F64 | None = None) -> None:
+        """Queue one frame's (n, 3) base points (n = 0: constant-velocity prediction) and
+        the expected step's translation (3,) in the previous frame's base (None: KISS-ICP's
+        own constant-velocity guess)."""
         p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        prior = np.full(3, np.nan) if prior_t is None else np.asarray(prior_t, dtype=np.float64)
         try:
             assert self.proc.stdin is not None
             self.proc.stdin.write(_COUNT.pack(len(p)))
+            self.proc.stdin.write(np.ascontiguousarray(prior).tobytes())
             if len(p):
                 self.proc.stdin.write(memoryview(p).cast("B"))
             self.proc.stdin.flush()
@@ -127,6 +131,22 @@ def kiss_config(settings: dict[str, Any]) -> Any:
     return cfg
 
 
+def set_prior(kiss: Any, prior_t: F64 | None) -> None:
+    """Seed KISS-ICP's next initial guess with an expected step translation (3,) in the
+    previous frame's base (its rotation stays KISS-ICP's constant-velocity one). Non-finite
+    or None: KISS-ICP's own guess.
+
+    From a standing start KISS-ICP's constant-velocity guess is zero, and against its 1 m
+    map voxels a slow train's 15 cm steps came out at 6-12 cm for a second or more
+    (tight_curve at 1.5 m/s, 30 % density: 2.0 m travelled against 2.85 m).
+    """
+    if prior_t is None or not np.all(np.isfinite(prior_t)):
+        return
+    delta = np.array(kiss.last_delta, dtype=np.float64)
+    delta[:3, 3] = prior_t
+    kiss.last_delta = delta
+
+
 def serve(settings: dict[str, Any], inp: IO[bytes], out: IO[bytes]) -> None:
     """The child's loop: register every frame read from ``inp``, answer on ``out``."""
 
@@ -136,7 +156,9 @@ def serve(settings: dict[str, Any], inp: IO[bytes], out: IO[bytes]) -> None:
         if len(head) < _COUNT.size:
             return
         (n,) = _COUNT.unpack(head)
+        prior = np.frombuffer(_read_exact(inp, 24), dtype=np.float64)
         p = np.frombuffer(_read_exact(inp, int(n) * 24), dtype=np.float64).reshape(-1, 3)
+        set_prior(kiss, prior)
         if n == 0:
             kiss.last_pose = kiss.last_pose @ kiss.last_delta
             source = np.zeros((0, 3))

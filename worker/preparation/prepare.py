@@ -60,8 +60,10 @@ from worker.preparation.config import PrepareConfig
 from worker.preparation.frame_clouds import FrameClouds
 from worker.preparation.localization import odometry_track, run_strategy
 from worker.preparation.localization.anchor import anchored_to_ins
-from worker.preparation.localization.base import Health, LocalizationInput
+from worker.preparation.localization.auto import crispness, judge
+from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
 from worker.preparation.localization.common import make_input
+from worker.preparation.localization.odometry import odometry_run
 from worker.preparation.registration import RegisteredCloud, dense_points, register_clouds
 from worker.preparation.scene_elements import find_scene_elements, reference_centreline
 from worker.preparation.tracks import find_tracks
@@ -270,6 +272,8 @@ def run_preparation(
     setup = localization_setup(seq, config, stage)
     with stage("strategy"):
         result = run_strategy(config.strategy, setup.inp)
+        if config.strategy != "auto":  # auto judged its candidates against each other
+            _cross_check(setup, result)
     final = _final_map(seq, config, setup, result.track, stage)
     with stage("calibration_point"):
         cal = _calibration(seq, config, cl, cameras, final, result.track, setup.clouds)
@@ -300,6 +304,24 @@ def run_preparation(
     )
     log.info("preparation of %s done in %.1f s", seq.name, summary["total_seconds"])
     return prepared
+
+
+def _cross_check(setup: LocalizationSetup, result: LocalizationResult) -> None:
+    """Judge a strategy's result against the odometry's and the INS's maps (crispness of
+    the clouds KISS-ICP kept, :func:`~.localization.auto.judge`): flags it degraded when it
+    is much less crisp than either."""
+    inp = setup.inp
+    try:
+        clouds = odometry_run(inp).clouds
+        T_ins = _at_frames(inp.ins_track, inp).T
+    except (ValueError, RuntimeError) as exc:
+        log.warning("no cross-check of %s: %s", result.strategy, exc)
+        return
+    tracks = {result.strategy: result.track.T, "odometry": setup.odo_track.T, "ins": T_ins}
+    crisp = {name: crispness(clouds, T) for name, T in tracks.items()}
+    for name, c in crisp.items():
+        result.health.metrics[f"cross_check_crispness_{name}_m"] = c
+    judge({result.strategy: result}, crisp)
 
 
 @dataclass

@@ -110,6 +110,30 @@ def crispness(clouds: list[F64], T_world_base: F64) -> float:
     return float(np.median(np.concatenate(dists)))
 
 
+#: A result whose map is this much less crisp than the crispest candidate's is taken as more
+#: than 2x worse than the best available (crispness grows slower than the pose error:
+#: 37 against 70 mm for a 7x worse lag-1 translation; the robustness matrix reports how
+#: often this judgement is right).
+CRISP_DEGRADED = 1.5
+
+
+def judge(results: dict[str, LocalizationResult], crisp: dict[str, float]) -> None:
+    """Flag (in their health) the results whose map is CRISP_DEGRADED times less crisp
+    than the crispest of ``crisp`` ({name: m}, NaN: not measured)."""
+    finite = {k: v for k, v in crisp.items() if np.isfinite(v) and v > 0}
+    if not finite:
+        return
+    best_name = min(finite, key=finite.__getitem__)
+    best = finite[best_name]
+    for name, res in results.items():
+        c = finite.get(name)
+        if c is not None and c > CRISP_DEGRADED * best:
+            res.health.degrade(
+                f"{name}: map {c / best:.1f}x less crisp than {best_name}'s "
+                f"({c * 1000:.1f} against {best * 1000:.1f} mm): likely more than 2x worse"
+            )
+
+
 def rail_residual(inp: LocalizationInput, T: F64) -> float:
     """RMS (m) of the poses' horizontal and vertical offsets from the ego centreline."""
     if inp.ego is None:
@@ -151,9 +175,14 @@ class AutoStrategy:
         T_ins = results["ins"].track.T
         scores: dict[str, float] = {}
         reasons: list[str] = []
+        crisp_all = {
+            name: crispness(clouds, res.track.T) if clouds else float("nan")
+            for name, res in results.items()
+        }
+        judge(results, crisp_all)
         for name, res in results.items():
             T = res.track.T
-            crisp = crispness(clouds, T) if clouds else float("nan")
+            crisp = crisp_all[name]
             health.metrics[f"auto_crispness_{name}_m"] = crisp
             health.metrics[f"auto_rail_residual_{name}_m"] = rail_residual(inp, T)
             health.metrics[f"auto_ins_agreement_{name}_m"] = ins_agreement(T, T_ins)
@@ -170,6 +199,8 @@ class AutoStrategy:
             health.warnings.append(w if w.startswith(f"{chosen}:") else f"{chosen}: {w}")
         if chosen != PREFERENCE[0]:
             health.fallback = chosen
+        for why in results[chosen].health.degraded:
+            health.degraded.append(f"auto chose {chosen}, itself degraded: {why}")
         health.metrics["auto_chosen_index"] = float(PREFERENCE.index(chosen))
         reason = "; ".join(reasons)
         log.info("auto chose %s: %s", chosen, reason)

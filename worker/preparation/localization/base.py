@@ -23,17 +23,26 @@ from worker.preparation.centreline import Centreline
 
 @dataclass
 class Health:
-    """A strategy's own report: problems seen (degenerate ICP, GNSS jumps, no rails,
-    standstill, ...), the consistency measures it computed (used by ``auto``), and which
-    fallback it took, if any."""
+    """A strategy's own report: what it saw (GNSS jumps, standstill, dropouts, ...), the
+    consistency measures it computed (used by ``auto``), which fallback it took, if any,
+    and why the result is believed degraded - more than 2x worse than the best available
+    (a degenerate or slipping ICP, no rails for the rail strategy, a failed smoothing, a
+    map much less crisp than another strategy's: :func:`~.auto.judge`). A warning alone is
+    information; ``ok`` is False only with a reason in ``degraded``."""
 
     warnings: list[str] = field(default_factory=list)
     metrics: dict[str, float] = field(default_factory=dict)
     fallback: str | None = None
+    degraded: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
-        return not self.warnings and self.fallback is None
+        return not self.degraded
+
+    def degrade(self, reason: str) -> None:
+        """Flag the result as degraded (also a warning)."""
+        self.warn(reason)
+        self.degraded.append(reason)
 
     def warn(self, message: str) -> None:
 
@@ -43,6 +52,7 @@ class Health:
     def to_json(self) -> dict[str, Any]:
         return {
             "ok": self.ok,
+            "degraded": list(self.degraded),
             "warnings": list(self.warnings),
             "metrics": {k: float(v) for k, v in self.metrics.items()},
             "fallback": self.fallback,

@@ -1150,7 +1150,7 @@ class FusedStrategy:
     ) -> LocalizationResult:
 
         fallback = RailsStrategy().run(inp)
-        health.warn(f"fused: {why}; falling back to {fallback.health.fallback or 'rails'}")
+        health.degrade(f"fused: {why}; falling back to {fallback.health.fallback or 'rails'}")
         health.fallback = fallback.health.fallback or "rails"
         return make_result(self.name, inp, fallback.track.T, health, started)
 

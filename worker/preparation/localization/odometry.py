@@ -27,7 +27,12 @@ from kiss_icp.kiss_icp import KissICP
 from numpy.typing import NDArray
 
 from geometry.poses import PoseTrack
-from worker.preparation.kiss_process import KissProcess, KissProcessError, kiss_config
+from worker.preparation.kiss_process import (
+    KissProcess,
+    KissProcessError,
+    kiss_config,
+    set_prior,
+)
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
 from worker.preparation.localization.common import (
     ins_at_frames,
@@ -211,7 +216,8 @@ class _InProcess:
         self.kiss = KissICP(cfg)
         self.out: tuple[F64, F64] = (np.eye(4), np.zeros((0, 3)))
 
-    def send(self, points: F64) -> None:
+    def send(self, points: F64, prior_t: F64 | None = None) -> None:
+        set_prior(self.kiss, prior_t)
         if len(points) == 0:
             # Constant-velocity prediction, as KISS-ICP would start from.
             self.kiss.last_pose = self.kiss.last_pose @ self.kiss.last_delta
@@ -254,6 +260,22 @@ def run_kiss_icp(inp: LocalizationInput) -> OdometryRun:
     return _run_frames(inp, _InProcess(kiss_config(settings)), started)
 
 
+def step_priors(inp: LocalizationInput) -> F64 | None:
+    """(n-1, 3) each step's expected translation in the earlier frame's base, from the
+    INS velocity (good to cm/s) and attitude; None when the INS has no velocity."""
+    try:
+        ins = ins_at_frames(inp, Health())
+    except ValueError:
+        return None
+    v = ins.v_world
+    if len(v) < 2 or not np.any(np.linalg.norm(v, axis=1) > 0):
+        return None
+    dt = np.diff(np.asarray(inp.times, dtype=np.float64))
+    v_step = 0.5 * (v[1:] + v[:-1]) * dt[:, None]
+    R = ins.T_world_base[:-1, :3, :3]
+    return np.einsum("nji,nj->ni", R, v_step)
+
+
 def _run_frames(inp: LocalizationInput, kiss: Any, started: float) -> OdometryRun:
     """The frames through ``kiss`` (send / receive), each frame's input prepared while the
     previous one registers. ``kiss_seconds`` is the time spent waiting for KISS-ICP."""
@@ -267,6 +289,7 @@ def _run_frames(inp: LocalizationInput, kiss: Any, started: float) -> OdometryRu
     grounds: list[FrameGround] = []
     pairs: list[GroundPair] = []
     kiss_seconds = 0.0
+    priors = step_priors(inp) if inp.options.get("odometry_ins_prior", True) else None
     for k in range(n + 1):
         p = None
         if k < n:
@@ -281,7 +304,7 @@ def _run_frames(inp: LocalizationInput, kiss: Any, started: float) -> OdometryRu
         if k > 0:
             T[k - 1], source = kiss.receive()
         if p is not None:
-            kiss.send(p)
+            kiss.send(p, None if priors is None or k == 0 else priors[k - 1])
         kiss_seconds += time.perf_counter() - tic
         if source is not None:  # frame k - 1's checks, while KISS-ICP registers k
             sub = _subsample(np.asarray(source, dtype=np.float64), INFO_MAX_POINTS, rng)
@@ -333,13 +356,13 @@ def _diagnose(run: OdometryRun, inp: LocalizationInput, health: Health) -> None:
     ratio = d_odo / d_ins if d_ins > 1.0 else 1.0
     health.metrics["odometry_ins_distance_ratio"] = ratio
     if share > DEGENERATE_SHARE:
-        health.warn(
+        health.degrade(
             f"odometry degenerate along the track: {share:.0%} of frames have too little "
             f"along-track structure (median information {np.median(run.along_info):.4f} "
             f"< {DEGENERATE_ALONG_INFO})"
         )
     elif abs(ratio - 1.0) > DISTANCE_RATIO_TOL:
-        health.warn(
+        health.degrade(
             f"odometry travelled {d_odo:.1f} m against {d_ins:.1f} m of the INS "
             f"(ratio {ratio:.3f}): ICP probably slipped along the track"
         )
@@ -404,13 +427,14 @@ class OdometryStrategy:
             track, odo_health = odometry_track(inp)
         except Exception as exc:
             health = Health(fallback="ins")
-            health.warn(f"odometry failed ({exc}); falling back to the raw INS")
+            health.degrade(f"odometry failed ({exc}); falling back to the raw INS")
             T = interpolate_track(inp.ins_track, inp.times)
             return make_result(self.name, inp, T, health, started)
         health = Health(
             warnings=list(odo_health.warnings),
             metrics=dict(odo_health.metrics),
             fallback=odo_health.fallback,
+            degraded=list(odo_health.degraded),
         )
         return make_result(
             self.name,

@@ -89,13 +89,13 @@ class RailsStrategy:
         health = Health()
         ins = ins_at_frames(inp, health)
         if inp.ego is None:
-            health.warn("no rails found: no ego centreline; falling back to the raw INS")
+            health.degrade("no rails found: no ego centreline; falling back to the raw INS")
             health.fallback = "ins"
             return make_result(self.name, inp, ins.T_world_base, health, started)
         try:
             T, s, dist = rail_frames(inp.ego, ins.T_world_base[:, :3, 3])
         except Exception as exc:
-            health.warn(f"rails: projection onto the centreline failed ({exc}); raw INS used")
+            health.degrade(f"rails: projection onto the centreline failed ({exc}); raw INS used")
             health.fallback = "ins"
             return make_result(self.name, inp, ins.T_world_base, health, started)
         self._check(inp, ins.T_world_base, T, s, dist, health)
