@@ -305,6 +305,194 @@ def _smooth_drift(rng: np.random.Generator, t: F64, sigma: F64, period: float) -
     return out
 
 
+@dataclass(frozen=True)
+class _Streams:
+    """The simulation's independent random streams (spawned from ``model.seed``)."""
+
+    position_walk: np.random.Generator
+    position_noise: np.random.Generator
+    heading_walk: np.random.Generator
+    heading_noise: np.random.Generator
+    attitude_walk: np.random.Generator
+    attitude_noise: np.random.Generator
+    velocity: np.random.Generator
+    jump: np.random.Generator
+    misc: np.random.Generator  # stdev fluctuations, then dropouts
+    drift: np.random.Generator
+
+    @classmethod
+    def from_seed(cls, seed: int) -> _Streams:
+        # (spawned children are the same whatever their number: a new source goes last)
+        return cls(*[np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(10)])
+
+
+def _record_times(
+    frame_timestamps: ArrayLike, frame_idx: ArrayLike
+) -> tuple[F64, NDArray[np.int64]]:
+    """(n,) stamps and (n,) frame counters, checked."""
+    ts = np.asarray(frame_timestamps, dtype=np.float64).reshape(-1)
+    fi = np.asarray(frame_idx, dtype=np.int64).reshape(-1)
+    n = len(ts)
+    if n == 0 or fi.shape != ts.shape:
+        raise ValueError(f"need matching non-empty timestamps and frame_idx, got {n}, {fi.shape}")
+    if not np.all(np.isfinite(ts)) or np.any(np.diff(ts) <= 0.0):
+        raise ValueError("frame timestamps must be finite and strictly increasing")
+    return ts, fi
+
+
+def _drift(rngs: _Streams, model: InsErrorModel, ts: F64) -> F64:
+    """(n, 6) smooth errors: position E, N, U (m), heading, roll, pitch (deg)."""
+    return _smooth_drift(
+        rngs.drift,
+        ts,
+        np.array(
+            [*model.position_drift_m, model.heading_drift_deg, *[model.attitude_drift_deg] * 2]
+        ),
+        model.drift_period_s,
+    )
+
+
+def _position_errors(
+    rngs: _Streams, model: InsErrorModel, ts: F64, fi: NDArray[np.int64], dt: F64, drift: F64
+) -> tuple[F64, list[float]]:
+    """(n, 3) position errors in local ENU (random walk, noise, drift, GNSS jumps) and the
+    jumps' times."""
+    n = len(ts)
+    err_enu = _random_walk(rngs.position_walk, dt, np.asarray(model.position_random_walk_m))
+    err_enu += rngs.position_noise.standard_normal((n, 3)) * np.asarray(model.position_noise_m)
+    err_enu += drift[:, :3]
+    jump_frames = [(int(f), np.asarray(off, dtype=np.float64)) for f, off in model.jumps]
+    if model.jump_rate_hz > 0.0:
+        happens = rngs.jump.random(n) < model.jump_rate_hz * dt
+        offsets = rngs.jump.standard_normal((n, 3)) * model.jump_magnitude_m * [1.0, 1.0, 0.5]
+        jump_frames += [(int(fi[k]), offsets[k]) for k in np.flatnonzero(happens)]
+    t_jumps: list[float] = []
+    for f, off in jump_frames:
+        hit = np.flatnonzero(fi >= f)
+        if len(hit) == 0:
+            continue
+        k0 = int(hit[0])
+        age = ts[k0:] - ts[k0]
+        decay = 1.0 if model.jump_decay_s is None else np.exp(-age / model.jump_decay_s)
+        err_enu[k0:] += np.asarray(decay)[..., None] * off
+        t_jumps.append(float(ts[k0]))
+    if t_jumps:
+        logger.info("INS simulation: %d GNSS jumps at t = %s", len(t_jumps), t_jumps)
+    return err_enu, t_jumps
+
+
+def _attitude(
+    rngs: _Streams, model: InsErrorModel, R_enu_ins: F64, dt: F64, drift: F64
+) -> tuple[F64, F64, F64]:
+    """NovAtel roll, pitch, azimuth (deg) of ``R_enu_ins`` with their errors."""
+    n = len(dt)
+    roll, pitch, azimuth = novatel_attitude_from_R(R_enu_ins)
+    heading_err = _random_walk(rngs.heading_walk, dt, np.array([model.heading_random_walk_deg]))
+    heading_err = heading_err[:, 0]
+    heading_err += rngs.heading_noise.standard_normal(n) * model.heading_noise_deg + drift[:, 3]
+    att_err = _random_walk(rngs.attitude_walk, dt, np.full(2, model.attitude_random_walk_deg))
+    att_err += rngs.attitude_noise.standard_normal((n, 2)) * model.attitude_noise_deg + drift[:, 4:]
+    roll = roll + att_err[:, 0]
+    pitch = pitch + att_err[:, 1]
+    azimuth = np.mod(azimuth + heading_err, 360.0)
+    azimuth = np.where(azimuth >= 360.0, 0.0, azimuth)
+    return roll, pitch, azimuth
+
+
+def _stdevs(
+    rng: np.random.Generator,
+    model: InsErrorModel,
+    ts: F64,
+    fi: NDArray[np.int64],
+    t_jumps: list[float],
+) -> InsStdDev:
+    """INSSTDEV: baseline sigmas, raised for a few seconds after each jump, fluctuating."""
+    n = len(ts)
+    base = np.sqrt(
+        np.asarray(model.position_stdev_m) ** 2 + np.asarray(model.position_noise_m) ** 2
+    )
+    gain = np.ones(n)
+    for tj in t_jumps:
+        age = ts - tj
+        gain = np.maximum(
+            gain,
+            np.where(
+                age >= 0.0,
+                1.0
+                + (_JUMP_STDEV_GAIN - 1.0) * np.exp(-np.maximum(age, 0.0) / _JUMP_STDEV_DECAY_S),
+                1.0,
+            ),
+        )
+    fluct = np.exp(0.1 * rng.standard_normal((n, 9)))
+    pos_sd = base[None, :] * gain[:, None] * fluct[:, :3]
+    vel_sd = max(model.velocity_noise_mps, 0.005) * gain[:, None] * fluct[:, 3:6]
+    att_base = max(model.attitude_noise_deg, 0.005)
+    az_base = max(model.heading_noise_deg, 0.01)
+    return InsStdDev(
+        frame_idx=fi.copy(),
+        timestamp=ts.copy(),
+        latitude_stdev=pos_sd[:, 1],
+        longitude_stdev=pos_sd[:, 0],
+        height_stdev=pos_sd[:, 2],
+        north_velocity_stdev=vel_sd[:, 1],
+        east_velocity_stdev=vel_sd[:, 0],
+        up_velocity_stdev=vel_sd[:, 2],
+        roll_stdev=att_base * fluct[:, 6],
+        pitch_stdev=att_base * fluct[:, 7],
+        azimuth_stdev=az_base * fluct[:, 8],
+    )
+
+
+def _corrimu(
+    ins_pose: Callable[[F64], F64],
+    t_true: F64,
+    ts: F64,
+    fi: NDArray[np.int64],
+    R_now: F64,
+    v_world: F64,
+) -> CorrImu:
+    """CORRIMU: rotation and kinematic acceleration per IMU sample over the window before
+    each record's true time (body frame R_now, velocity v_world at the true times)."""
+    win = CORRIMU_WINDOW_S
+    hv = _VELOCITY_STEP_S
+    samples = win * IMU_RATE_HZ
+    R_prev = ins_pose(t_true - win)[:, :3, :3]
+    dtheta_ins = Rotation.from_matrix(np.swapaxes(R_prev, -1, -2) @ R_now).as_rotvec()
+    v_prev = (ins_pose(t_true - win + hv)[:, :3, 3] - ins_pose(t_true - win - hv)[:, :3, 3]) / (
+        2.0 * hv
+    )
+    a_world = (v_world - v_prev) / win
+    R_mid = (Rotation.from_matrix(R_prev) * Rotation.from_rotvec(0.5 * dtheta_ins)).as_matrix()
+    a_ins = np.einsum("nji,nj->ni", R_mid, a_world)
+    week, ms = unix_to_gps_week(ts)
+    return CorrImu(
+        frame_idx=fi.copy(),
+        timestamp=ts.copy(),
+        gps_week_number=week,
+        gps_week_milliseconds=ms,
+        pitch_rate=dtheta_ins[:, 0] / samples,
+        roll_rate=dtheta_ins[:, 1] / samples,
+        yaw_rate=dtheta_ins[:, 2] / samples,
+        lateral_acc=a_ins[:, 0] / IMU_RATE_HZ,
+        longitudinal_acc=a_ins[:, 1] / IMU_RATE_HZ,
+        vertical_acc=a_ins[:, 2] / IMU_RATE_HZ,
+    )
+
+
+def _dropped(
+    rng: np.random.Generator, model: InsErrorModel, fi: NDArray[np.int64]
+) -> NDArray[np.bool_]:
+    """(n,) the records the dropout model removes (never all of them)."""
+    n = len(fi)
+    drop = rng.random(n) < model.dropout_fraction
+    drop |= np.isin(fi, np.asarray(model.dropout_frames, dtype=np.int64))
+    if np.all(drop):
+        raise ValueError("the dropout model removed every INS record")
+    if np.any(drop):
+        logger.info("INS simulation: %d of %d frames dropped", int(np.sum(drop)), n)
+    return drop
+
+
 def simulate_ins(
     true_base: PoseTrack | Callable[[F64], F64],
     frame_timestamps: ArrayLike,
@@ -325,19 +513,9 @@ def simulate_ins(
     true_world : world frame of ``true_base`` (default Hamburg).
     """
     model = InsErrorModel.profile("paper") if model is None else model
-    ts = np.asarray(frame_timestamps, dtype=np.float64).reshape(-1)
-    fi = np.asarray(frame_idx, dtype=np.int64).reshape(-1)
-    n = len(ts)
-    if n == 0 or fi.shape != ts.shape:
-        raise ValueError(f"need matching non-empty timestamps and frame_idx, got {n}, {fi.shape}")
-    if not np.all(np.isfinite(ts)) or np.any(np.diff(ts) <= 0.0):
-        raise ValueError("frame timestamps must be finite and strictly increasing")
+    ts, fi = _record_times(frame_timestamps, frame_idx)
     pose_at = _pose_function(true_base)
-    # (spawned children are the same whatever their number: a new source goes last)
-    streams = [np.random.default_rng(s) for s in np.random.SeedSequence(model.seed).spawn(10)]
-    rng_prw, rng_pn, rng_hrw, rng_hn, rng_arw, rng_an, rng_v, rng_jump, rng_misc = streams[:9]
-    rng_drift = streams[9]
-
+    rngs = _Streams.from_seed(model.seed)
     T_base_ins = model.T_base_ins
     t_true = ts - model.latency_s
     dt = np.concatenate([[0.0], np.diff(ts)])
@@ -345,63 +523,25 @@ def simulate_ins(
     def ins_pose(t: F64) -> F64:
         return pose_at(t) @ T_base_ins
 
-    # -- true INS state at the true times ----------------------------------------------------
+    # the true INS state at the true times, the reported position
     T_world_ins = ins_pose(t_true)
     p_true = T_world_ins[:, :3, 3]
     lat_t, lon_t, _ = true_world.world_to_geodetic(p_true)
     R_world_enu_true = true_world.R_world_enu_at(lat_t, lon_t)
-
-    # -- position errors (local ENU) ---------------------------------------------------------
-    err_enu = _random_walk(rng_prw, dt, np.asarray(model.position_random_walk_m))
-    err_enu += rng_pn.standard_normal((n, 3)) * np.asarray(model.position_noise_m)
-    drift = _smooth_drift(
-        rng_drift,
-        ts,
-        np.array(
-            [*model.position_drift_m, model.heading_drift_deg, *[model.attitude_drift_deg] * 2]
-        ),
-        model.drift_period_s,
-    )
-    err_enu += drift[:, :3]
-    jump_frames = [(int(f), np.asarray(off, dtype=np.float64)) for f, off in model.jumps]
-    if model.jump_rate_hz > 0.0:
-        happens = rng_jump.random(n) < model.jump_rate_hz * dt
-        offsets = rng_jump.standard_normal((n, 3)) * model.jump_magnitude_m * [1.0, 1.0, 0.5]
-        jump_frames += [(int(fi[k]), offsets[k]) for k in np.flatnonzero(happens)]
-    t_jumps: list[float] = []
-    for f, off in jump_frames:
-        hit = np.flatnonzero(fi >= f)
-        if len(hit) == 0:
-            continue
-        k0 = int(hit[0])
-        age = ts[k0:] - ts[k0]
-        decay = 1.0 if model.jump_decay_s is None else np.exp(-age / model.jump_decay_s)
-        err_enu[k0:] += np.asarray(decay)[..., None] * off
-        t_jumps.append(float(ts[k0]))
-    if t_jumps:
-        logger.info("INS simulation: %d GNSS jumps at t = %s", len(t_jumps), t_jumps)
-
+    drift = _drift(rngs, model, ts)
+    err_enu, t_jumps = _position_errors(rngs, model, ts, fi, dt, drift)
     p_meas = p_true + np.einsum("nij,nj->ni", R_world_enu_true, err_enu)
     lat, lon, h = true_world.world_to_geodetic(p_meas)
     R_world_enu = true_world.R_world_enu_at(lat, lon)
 
-    # -- attitude ----------------------------------------------------------------------------
     R_enu_ins = np.swapaxes(R_world_enu, -1, -2) @ T_world_ins[:, :3, :3]
-    roll, pitch, azimuth = novatel_attitude_from_R(R_enu_ins)
-    heading_err = _random_walk(rng_hrw, dt, np.array([model.heading_random_walk_deg]))[:, 0]
-    heading_err += rng_hn.standard_normal(n) * model.heading_noise_deg + drift[:, 3]
-    att_err = _random_walk(rng_arw, dt, np.full(2, model.attitude_random_walk_deg))
-    att_err += rng_an.standard_normal((n, 2)) * model.attitude_noise_deg + drift[:, 4:]
-    roll = roll + att_err[:, 0]
-    pitch = pitch + att_err[:, 1]
-    azimuth = np.mod(azimuth + heading_err, 360.0)
-    azimuth = np.where(azimuth >= 360.0, 0.0, azimuth)
+    roll, pitch, azimuth = _attitude(rngs, model, R_enu_ins, dt, drift)
 
-    # -- velocity (local ENU at the reported position) --------------------------------------
+    # velocity: local ENU at the reported position
     hv = _VELOCITY_STEP_S
     v_world = (ins_pose(t_true + hv)[:, :3, 3] - ins_pose(t_true - hv)[:, :3, 3]) / (2.0 * hv)
     v_enu = np.einsum("nji,nj->ni", R_world_enu, v_world)
-    v_enu += rng_v.standard_normal((n, 3)) * model.velocity_noise_mps
+    v_enu += rngs.velocity.standard_normal((len(ts), 3)) * model.velocity_noise_mps
 
     inspva = InsPva(
         frame_idx=fi.copy(),
@@ -416,76 +556,10 @@ def simulate_ins(
         pitch=pitch,
         azimuth=azimuth,
     )
-
-    # -- standard deviations ----------------------------------------------------------------
-    base = np.sqrt(
-        np.asarray(model.position_stdev_m) ** 2 + np.asarray(model.position_noise_m) ** 2
-    )
-    gain = np.ones(n)
-    for tj in t_jumps:
-        age = ts - tj
-        gain = np.maximum(
-            gain,
-            np.where(
-                age >= 0.0,
-                1.0
-                + (_JUMP_STDEV_GAIN - 1.0) * np.exp(-np.maximum(age, 0.0) / _JUMP_STDEV_DECAY_S),
-                1.0,
-            ),
-        )
-    fluct = np.exp(0.1 * rng_misc.standard_normal((n, 9)))
-    pos_sd = base[None, :] * gain[:, None] * fluct[:, :3]
-    vel_sd = max(model.velocity_noise_mps, 0.005) * gain[:, None] * fluct[:, 3:6]
-    att_base = max(model.attitude_noise_deg, 0.005)
-    az_base = max(model.heading_noise_deg, 0.01)
-    insstdev = InsStdDev(
-        frame_idx=fi.copy(),
-        timestamp=ts.copy(),
-        latitude_stdev=pos_sd[:, 1],
-        longitude_stdev=pos_sd[:, 0],
-        height_stdev=pos_sd[:, 2],
-        north_velocity_stdev=vel_sd[:, 1],
-        east_velocity_stdev=vel_sd[:, 0],
-        up_velocity_stdev=vel_sd[:, 2],
-        roll_stdev=att_base * fluct[:, 6],
-        pitch_stdev=att_base * fluct[:, 7],
-        azimuth_stdev=az_base * fluct[:, 8],
-    )
-
-    # -- corrected IMU increments -----------------------------------------------------------
-    win = CORRIMU_WINDOW_S
-    samples = win * IMU_RATE_HZ
-    T_prev = ins_pose(t_true - win)
-    R_prev, R_now = T_prev[:, :3, :3], T_world_ins[:, :3, :3]
-    dtheta_ins = Rotation.from_matrix(np.swapaxes(R_prev, -1, -2) @ R_now).as_rotvec()
-    v_prev = (ins_pose(t_true - win + hv)[:, :3, 3] - ins_pose(t_true - win - hv)[:, :3, 3]) / (
-        2.0 * hv
-    )
-    a_world = (v_world - v_prev) / win
-    R_mid = (Rotation.from_matrix(R_prev) * Rotation.from_rotvec(0.5 * dtheta_ins)).as_matrix()
-    a_ins = np.einsum("nji,nj->ni", R_mid, a_world)
-    week, ms = unix_to_gps_week(ts)
-    corrimu = CorrImu(
-        frame_idx=fi.copy(),
-        timestamp=ts.copy(),
-        gps_week_number=week,
-        gps_week_milliseconds=ms,
-        pitch_rate=dtheta_ins[:, 0] / samples,
-        roll_rate=dtheta_ins[:, 1] / samples,
-        yaw_rate=dtheta_ins[:, 2] / samples,
-        lateral_acc=a_ins[:, 0] / IMU_RATE_HZ,
-        longitudinal_acc=a_ins[:, 1] / IMU_RATE_HZ,
-        vertical_acc=a_ins[:, 2] / IMU_RATE_HZ,
-    )
-
-    # -- dropouts ---------------------------------------------------------------------------
-    drop = rng_misc.random(n) < model.dropout_fraction
-    drop |= np.isin(fi, np.asarray(model.dropout_frames, dtype=np.int64))
-    if np.all(drop):
-        raise ValueError("the dropout model removed every INS record")
+    insstdev = _stdevs(rngs.misc, model, ts, fi, t_jumps)
+    corrimu = _corrimu(ins_pose, t_true, ts, fi, T_world_ins[:, :3, :3], v_world)
+    drop = _dropped(rngs.misc, model, fi)
     keep = ~drop
-    if np.any(drop):
-        logger.info("INS simulation: %d of %d frames dropped", int(np.sum(drop)), n)
     inspva = inspva.take(keep)  # type: ignore[assignment]
     insstdev = insstdev.take(keep)  # type: ignore[assignment]
     corrimu = corrimu.take(keep)  # type: ignore[assignment]
