@@ -338,6 +338,21 @@ def sensors_to_json(sensors: list[LidarSensor]) -> list[dict[str, Any]]:
 # --------------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class _Returns:
+    """Rays that returned: index into the frame's rays, hit face, its normal, true and
+    measured range, emitting sensor (position in the simulator's list), the standard normal
+    draw of its intensity noise."""
+
+    idx: NDArray[np.int64]
+    face: NDArray[np.int64]
+    normal: F64
+    r_true: F64
+    r_meas: F64
+    which: NDArray[np.int64]
+    u_int: F64
+
+
 class LidarSimulator:
     """Ray-casts the lidars of a rig against a static scene mesh.
 
@@ -439,19 +454,69 @@ class LidarSimulator:
         """
         frame_time = float(frame_time)
         rng = np.random.default_rng([self.seed & _MASK63, round(frame_time * 1e6) & _MASK63])
+        dt, which, d_sensor = self._emit(frame_time)
+        T_world_base_u, inv, T_world_base_ft = self._true_poses(frame_time, dt, pose_at)
+        o_rel, d_world = self._world_rays(which, d_sensor, T_world_base_u, inv)
+        ret = self._measure(rng, self._cast(o_rel, d_world, which))
 
-        # 1. rays of every sensor in its own frame, with emission times
+        o_w_rel = o_rel[ret.idx]
+        d_w = d_world[ret.idx]
+        hit_world = o_w_rel + ret.r_true[:, None] * d_w + self.origin
+        p_world_rel = o_w_rel + ret.r_meas[:, None] * d_w
+
+        # deskew: into the base frame at frame_time
+        T_base_world_ft = invert_T(T_world_base_ft)
+        R_bw = T_base_world_ft[:3, :3]
+        t_bw = T_base_world_ft[:3, 3] + R_bw @ self.origin  # maps origin-relative points
+        p_base = p_world_rel @ R_bw.T + t_bw
+        origin_base = o_w_rel @ R_bw.T + t_bw
+        dir_base = d_w @ R_bw.T
+
+        intensity, cos_inc, mat = self._intensity(ret, d_w)
+        sensor_index = np.array([s.sensor_index for s in self.sensors], dtype=np.uint8)
+        cloud = {
+            "x": p_base[:, 0].astype(np.float32),
+            "y": p_base[:, 1].astype(np.float32),
+            "z": p_base[:, 2].astype(np.float32),
+            "intensity": intensity.astype(np.float32),
+            "timestamp": frame_time + dt[ret.idx],
+            "sensor_index": sensor_index[ret.which],
+        }
+        truth = {
+            "hit_world": hit_world,
+            "face_id": ret.face,
+            "face_material": mat,
+            "range_true": ret.r_true,
+            "range_measured": ret.r_meas,
+            "origin_base": origin_base,
+            "dir_base": dir_base,
+            "cos_incidence": cos_inc,
+            "T_world_base": T_world_base_ft,
+        }
+        logger.debug(
+            "lidar frame %.6f: %d rays, %d returns",
+            frame_time,
+            len(dt),
+            len(ret.idx),
+        )
+        return cloud, truth
+
+    def _emit(self, frame_time: float) -> tuple[F64, NDArray[np.int64], F64]:
+        """Rays of every sensor in its own frame: emission times relative to frame_time
+        (n,), the emitting sensor's position in ``self.sensors`` (n,), directions (n, 3)."""
         dirs_s, dts, sidx = [], [], []
         for k, s in enumerate(self.sensors):
             pat = s.pattern.rays(frame_time, self.density)
             dirs_s.append(pat.dirs_sensor)
             dts.append(pat.dt)
             sidx.append(np.full(len(pat.dt), k, dtype=np.int64))
-        dt = np.concatenate(dts)
-        which = np.concatenate(sidx)  # position in self.sensors
-        d_sensor = np.concatenate(dirs_s)
+        return np.concatenate(dts), np.concatenate(sidx), np.concatenate(dirs_s)
 
-        # 2. true poses at the unique emission times, rays in world (relative to origin)
+    def _true_poses(
+        self, frame_time: float, dt: F64, pose_at: PoseFn
+    ) -> tuple[F64, NDArray[np.intp], F64]:
+        """True T_world_base at the unique emission times (u, 4, 4), each ray's index into
+        them (n,), and the pose at frame_time (4, 4)."""
         t_unique, inv = np.unique(dt, return_inverse=True)
         T_world_base_u = np.asarray(pose_at(frame_time + t_unique), dtype=np.float64)
         if T_world_base_u.shape != (len(t_unique), 4, 4):
@@ -465,7 +530,12 @@ class LidarSimulator:
             logger.warning(
                 "scan %.1f km from the float32 origin: pass a nearer origin", dist0 / 1e3
             )
+        return T_world_base_u, inv, T_world_base_ft
 
+    def _world_rays(
+        self, which: NDArray[np.int64], d_sensor: F64, T_world_base_u: F64, inv: NDArray[np.intp]
+    ) -> tuple[F64, F64]:
+        """Ray origins (relative to ``self.origin``) and directions in the world (n, 3)."""
         R_bs = np.stack([s.T_base_sensor[:3, :3] for s in self.sensors])  # (k, 3, 3)
         t_bs = np.stack([s.T_base_sensor[:3, 3] for s in self.sensors])  # (k, 3)
         d_base = np.einsum("nij,nj->ni", R_bs[which], d_sensor)
@@ -474,93 +544,65 @@ class LidarSimulator:
         t_wb = T_world_base_u[inv, :3, 3]
         d_world = np.einsum("nij,nj->ni", R_wb, d_base)
         o_rel = np.einsum("nij,nj->ni", R_wb, o_base) + (t_wb - self.origin)
+        return o_rel, d_world
 
-        # 3. cast
-        rays = np.empty((len(dt), 6), dtype=np.float32)
+    def _cast(self, o_rel: F64, d_world: F64, which: NDArray[np.int64]) -> _Returns:
+        """The rays that hit the scene (no measurement model yet: r_meas = r_true)."""
+        rays = np.empty((len(o_rel), 6), dtype=np.float32)
         rays[:, :3] = o_rel
         rays[:, 3:] = d_world
         ans = self._scene.cast_rays(o3d.core.Tensor(rays), nthreads=self.nthreads)
         t_hit = ans["t_hit"].numpy().astype(np.float64)
-        hit = np.isfinite(t_hit)
-        idx = np.flatnonzero(hit)
-        face = ans["primitive_ids"].numpy()[idx].astype(np.int64)
-        normal = ans["primitive_normals"].numpy()[idx].astype(np.float64)
-        r_true = t_hit[idx]
-        which_h = which[idx]
+        idx = np.flatnonzero(np.isfinite(t_hit))
+        return _Returns(
+            idx=idx,
+            face=ans["primitive_ids"].numpy()[idx].astype(np.int64),
+            normal=ans["primitive_normals"].numpy()[idx].astype(np.float64),
+            r_true=t_hit[idx],
+            r_meas=t_hit[idx],
+            which=which[idx],
+            u_int=np.zeros(len(idx)),
+        )
 
-        # 4. measurement model
+    def _measure(self, rng: np.random.Generator, hits: _Returns) -> _Returns:
+        """Range noise, range limits and dropouts; the intensity noise draw of each kept
+        return. Draws for every hit, so the random streams do not depend on what is kept."""
+        which_h = hits.which
+        n = len(hits.idx)
         sigma = np.array([s.range_sigma for s in self.sensors])[which_h]
-        noise = np.clip(rng.standard_normal(len(idx)), -NOISE_TRUNCATION, NOISE_TRUNCATION)
-        r_meas = r_true + sigma * noise
+        noise = np.clip(rng.standard_normal(n), -NOISE_TRUNCATION, NOISE_TRUNCATION)
+        r_meas = hits.r_true + sigma * noise
         max_r = np.array([s.max_range for s in self.sensors])[which_h]
         min_r = np.array([s.min_range for s in self.sensors])[which_h]
         drop_p = np.array([s.dropout for s in self.sensors])[which_h]
-        keep = (r_meas <= max_r) & (r_meas >= min_r) & (r_true <= max_r)
-        keep &= rng.random(len(idx)) >= drop_p
-        u_int = rng.standard_normal(len(idx))  # drawn for all hits: stable streams
+        keep = (r_meas <= max_r) & (r_meas >= min_r) & (hits.r_true <= max_r)
+        keep &= rng.random(n) >= drop_p
+        u_int = rng.standard_normal(n)  # drawn for all hits: stable streams
         sel = np.flatnonzero(keep)
-        idx, face, normal, r_true, r_meas, which_h = (
-            idx[sel],
-            face[sel],
-            normal[sel],
-            r_true[sel],
-            r_meas[sel],
-            which_h[sel],
+        return _Returns(
+            idx=hits.idx[sel],
+            face=hits.face[sel],
+            normal=hits.normal[sel],
+            r_true=hits.r_true[sel],
+            r_meas=r_meas[sel],
+            which=which_h[sel],
+            u_int=u_int[sel],
         )
-        u_int = u_int[sel]
 
-        o_w_rel = o_rel[idx]
-        d_w = d_world[idx]
-        hit_world = o_w_rel + r_true[:, None] * d_w + self.origin
-        p_world_rel = o_w_rel + r_meas[:, None] * d_w
-
-        # 5. deskew: into the base frame at frame_time
-        T_base_world_ft = invert_T(T_world_base_ft)
-        R_bw = T_base_world_ft[:3, :3]
-        t_bw = T_base_world_ft[:3, 3] + R_bw @ self.origin  # maps origin-relative points
-        p_base = p_world_rel @ R_bw.T + t_bw
-        origin_base = o_w_rel @ R_bw.T + t_bw
-        dir_base = d_w @ R_bw.T
-
-        # 6. intensity
-        cos_inc = np.abs(np.einsum("ni,ni->n", normal, d_w))
-        mat = self._face_material[face]
+    def _intensity(self, ret: _Returns, d_w: F64) -> tuple[F64, F64, NDArray[np.int64]]:
+        """Intensity (n,), |cos| of the incidence angle (n,), material of the hit face (n,)."""
+        which_h = ret.which
+        cos_inc = np.abs(np.einsum("ni,ni->n", ret.normal, d_w))
+        mat = self._face_material[ret.face]
         rho = self._reflectivity[mat]
         half = np.array([s.intensity_half_range for s in self.sensors])[which_h]
         rel_n = np.array([s.intensity_noise for s in self.sensors])[which_h]
         scale = np.array([s.intensity_scale for s in self.sensors])[which_h]
         as_int = np.array([s.intensity_integer for s in self.sensors])[which_h]
-        val = rho * cos_inc / (1.0 + (r_true / half) ** 2) * (1.0 + rel_n * u_int)
+        val = rho * cos_inc / (1.0 + (ret.r_true / half) ** 2) * (1.0 + rel_n * ret.u_int)
         intensity = scale * np.clip(val, 0.0, 1.0)
         intensity = np.where(as_int, np.round(intensity), intensity)
-
-        sensor_index = np.array([s.sensor_index for s in self.sensors], dtype=np.uint8)
-        cloud = {
-            "x": p_base[:, 0].astype(np.float32),
-            "y": p_base[:, 1].astype(np.float32),
-            "z": p_base[:, 2].astype(np.float32),
-            "intensity": intensity.astype(np.float32),
-            "timestamp": frame_time + dt[idx],
-            "sensor_index": sensor_index[which_h],
-        }
-        truth = {
-            "hit_world": hit_world,
-            "face_id": face,
-            "face_material": mat,
-            "range_true": r_true,
-            "range_measured": r_meas,
-            "origin_base": origin_base,
-            "dir_base": dir_base,
-            "cos_incidence": cos_inc,
-            "T_world_base": T_world_base_ft,
-        }
-        logger.debug(
-            "lidar frame %.6f: %d rays, %d returns",
-            frame_time,
-            len(dt),
-            len(idx),
-        )
-        return cloud, truth
+        return intensity, cos_inc, mat
 
 
 def cloud_points(cloud: dict[str, np.ndarray]) -> F64:
