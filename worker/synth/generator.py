@@ -35,8 +35,14 @@ from worker.osdar.labels import frame_intervals
 from worker.osdar.pcd import PointCloud, header_for_fields
 from worker.osdar.writer import SequenceWriter
 from worker.synth.camera_sim import CameraSimulator
-from worker.synth.ins_sim import HAMBURG, InsErrorModel, simulate_ins
-from worker.synth.lidar_sim import LidarSimulator, default_sensors, sensors_to_json
+from worker.synth.ins_sim import HAMBURG, InsErrorModel, SimulatedIns, simulate_ins
+from worker.synth.lidar_sim import (
+    LidarSensor,
+    LidarSimulator,
+    default_sensors,
+    sensors_to_json,
+)
+from worker.synth.scene import Scene
 from worker.synth.scenes import build_scene
 
 log = logging.getLogger(__name__)
@@ -282,6 +288,117 @@ class SynthResult:
     stage_seconds: dict[str, float]
 
 
+@dataclass
+class _Rig:
+    """The simulated train: its trajectory in the scene frame S and its sensors."""
+
+    scene: Scene
+    traj: Trajectory
+    T_ref_S: F64  # the scene frame in the true reference frame (HAMBURG ENU)
+    cams_full: dict[str, CameraModel]  # full resolution (landmark pixels)
+    camsim: CameraSimulator
+    sensors: list[LidarSensor]
+    lidar: LidarSimulator
+    vis: LandmarkVisibility
+
+
+def _build_scene(cfg: SynthConfig, duration: float) -> tuple[Scene, float, float, F64]:
+    """The scene, long enough for the drive: (scene, speed m/s, start arc length s0 m,
+    origin offset (3,))."""
+    offset = FAR_ORIGIN_OFFSET if cfg.far_origin else np.zeros(3)
+    scene_probe = build_scene(cfg.scene, seed=cfg.seed, length_m=10.0, **cfg.scene_params)
+    speed = (
+        0.0
+        if cfg.stationary
+        else (cfg.speed_mps if cfg.speed_mps is not None else scene_probe.speed_mps)
+    )
+    s0 = 30.0
+    driven = s0 + speed * duration * 1.1 + 1.0
+    scene = build_scene(
+        cfg.scene, seed=cfg.seed, length_m=driven, origin_offset=offset, **cfg.scene_params
+    )
+    return scene, speed, s0, offset
+
+
+def _make_rig(
+    cfg: SynthConfig,
+    scene: Scene,
+    traj: Trajectory,
+    offset: F64,
+    cams_full: dict[str, CameraModel],
+    cams: dict[str, CameraModel],
+    t0: float,
+) -> _Rig:
+    T_ref_S = np.eye(4)
+    T_ref_S[:3, 3] = -offset
+    camsim = CameraSimulator(scene, cams, seed=cfg.seed)
+    sensors = default_sensors()
+    lidar = LidarSimulator(
+        scene.mesh,
+        sensors,
+        origin=traj(np.array([t0]))[0, :3, 3],
+        seed=cfg.seed,
+        density=cfg.lidar_density,
+    )
+    vis = LandmarkVisibility(scene.mesh, origin=traj(np.array([t0]))[0, :3, 3])
+    return _Rig(scene, traj, T_ref_S, cams_full, camsim, sensors, lidar, vis)
+
+
+def _write_frame(
+    writer: SequenceWriter,
+    cfg: SynthConfig,
+    rig: _Rig,
+    ft: FrameTimes,
+    lm_xyz_S: F64,
+    lm_pixels: dict[str, dict[str, dict[str, Any]]],
+    stages: dict[str, float],
+) -> None:
+    """One frame: every camera's image and landmark pixels, the lidar cloud. Adds the
+    seconds spent to ``stages`` (render, write, landmarks, lidar)."""
+    for cname in cfg.cameras:
+        T_S_base = rig.traj(np.array([ft.seconds(cname)]))[0]
+        tic = time.perf_counter()
+        img = rig.camsim.render(cname, T_S_base)
+        stages["render"] += time.perf_counter() - tic
+        tic = time.perf_counter()
+        writer.write_image(
+            f"/{cname}/{ft.counter:03d}_{ft.string(cname)}.png",
+            img,
+            compression=cfg.png_compression,
+        )
+        stages["write"] += time.perf_counter() - tic
+        tic = time.perf_counter()
+        _landmark_pixels(
+            lm_pixels,
+            rig.scene.landmarks,
+            lm_xyz_S,
+            rig.cams_full[cname],
+            T_S_base,
+            rig.vis,
+            ft.counter,
+        )
+        stages["landmarks"] += time.perf_counter() - tic
+    tic = time.perf_counter()
+    scan = rig.lidar.scan(ft.seconds("lidar"), rig.traj)
+    stages["lidar"] += time.perf_counter() - tic
+    tic = time.perf_counter()
+    cloud = _cloud_from_scan(scan, cfg.pcd_data)
+    writer.write_pcd(f"/lidar/{ft.counter:03d}_{ft.string('lidar')}.pcd", cloud)
+    stages["write"] += time.perf_counter() - tic
+
+
+def _simulate_ins(cfg: SynthConfig, rig: _Rig, schedule: list[FrameTimes]) -> SimulatedIns:
+    """INS for the whole sequence, at the lidar timestamps (the frame's clock)."""
+    model = InsErrorModel.profile(cfg.ins_profile, seed=cfg.seed, **cfg.ins_overrides)
+    t_lidar = np.array([ft.seconds("lidar") for ft in schedule])
+    counters = np.array([ft.counter for ft in schedule])
+
+    def true_ref(t: F64) -> F64:
+        return rig.T_ref_S @ rig.traj(t)
+
+    return simulate_ins(true_ref, t_lidar, counters, model, true_world=HAMBURG)
+
+
 def generate(
     out: Path, cfg: SynthConfig, progress: Callable[[int, int], None] | None = None
 ) -> SynthResult:
@@ -304,34 +421,11 @@ def generate(
     duration = cfg.frames * FRAME_PERIOD_NS / 1e9
 
     tic = time.perf_counter()
-    offset = FAR_ORIGIN_OFFSET if cfg.far_origin else np.zeros(3)
-    scene_probe = build_scene(cfg.scene, seed=cfg.seed, length_m=10.0, **cfg.scene_params)
-    speed = (
-        0.0
-        if cfg.stationary
-        else (cfg.speed_mps if cfg.speed_mps is not None else scene_probe.speed_mps)
-    )
-    s0 = 30.0
-    driven = s0 + speed * duration * 1.1 + 1.0
-    scene = build_scene(
-        cfg.scene, seed=cfg.seed, length_m=driven, origin_offset=offset, **cfg.scene_params
-    )
+    scene, speed, s0, offset = _build_scene(cfg, duration)
     stages["scene"] = time.perf_counter() - tic
     traj = Trajectory(scene.ego, t0, speed, 0.0, s0, cfg.seed)
-    T_ref_S = np.eye(4)
-    T_ref_S[:3, 3] = -offset
-
     tic = time.perf_counter()
-    camsim = CameraSimulator(scene, cams, seed=cfg.seed)
-    sensors = default_sensors()
-    lidar = LidarSimulator(
-        scene.mesh,
-        sensors,
-        origin=traj(np.array([t0]))[0, :3, 3],
-        seed=cfg.seed,
-        density=cfg.lidar_density,
-    )
-    vis = LandmarkVisibility(scene.mesh, origin=traj(np.array([t0]))[0, :3, 3])
+    rig = _make_rig(cfg, scene, traj, offset, cams_full, cams, t0)
     stages["setup"] = time.perf_counter() - tic
 
     labels = _labels_skeleton(real, name, cams)
@@ -344,57 +438,19 @@ def generate(
     writer = SequenceWriter(out, name=name)
     with writer:
         for k, ft in enumerate(schedule):
-            for cname in cfg.cameras:
-                T_S_base = traj(np.array([ft.seconds(cname)]))[0]
-                tic = time.perf_counter()
-                img = camsim.render(cname, T_S_base)
-                stages["render"] += time.perf_counter() - tic
-                tic = time.perf_counter()
-                writer.write_image(
-                    f"/{cname}/{ft.counter:03d}_{ft.string(cname)}.png",
-                    img,
-                    compression=cfg.png_compression,
-                )
-                stages["write"] += time.perf_counter() - tic
-                tic = time.perf_counter()
-                _landmark_pixels(
-                    lm_pixels,
-                    scene.landmarks,
-                    lm_xyz_S,
-                    cams_full[cname],
-                    T_S_base,
-                    vis,
-                    ft.counter,
-                )
-                stages["landmarks"] += time.perf_counter() - tic
-            tic = time.perf_counter()
-            scan = lidar.scan(ft.seconds("lidar"), traj)
-            stages["lidar"] += time.perf_counter() - tic
-            tic = time.perf_counter()
-            cloud = _cloud_from_scan(scan, cfg.pcd_data)
-            writer.write_pcd(f"/lidar/{ft.counter:03d}_{ft.string('lidar')}.pcd", cloud)
-            stages["write"] += time.perf_counter() - tic
+            _write_frame(writer, cfg, rig, ft, lm_xyz_S, lm_pixels, stages)
             ol["frames"][str(ft.counter)] = _frame_entry(ft, cfg.cameras)
             if progress is not None:
                 progress(k + 1, len(schedule))
-        counters = [ft.counter for ft in schedule]
-        ol["frame_intervals"] = frame_intervals(counters)
+        ol["frame_intervals"] = frame_intervals([ft.counter for ft in schedule])
 
-        # INS for the whole sequence, at the lidar timestamps (the frame's clock).
         tic = time.perf_counter()
-        ref = HAMBURG
-        model = InsErrorModel.profile(cfg.ins_profile, seed=cfg.seed, **cfg.ins_overrides)
-        t_lidar = np.array([ft.seconds("lidar") for ft in schedule])
-
-        def true_ref(t: F64) -> F64:
-            return T_ref_S @ traj(t)
-
-        sim = simulate_ins(true_ref, t_lidar, np.array(counters), model, true_world=ref)
+        sim = _simulate_ins(cfg, rig, schedule)
         _write_ins(writer, sim, schedule)
         stages["ins"] = time.perf_counter() - tic
 
         tic = time.perf_counter()
-        T_W_S = sim.world.T_world_other(ref) @ T_ref_S
+        T_W_S = sim.world.T_world_other(HAMBURG) @ rig.T_ref_S
         _write_ground_truth(
             writer.root / "ground_truth",
             cfg,
@@ -403,7 +459,7 @@ def generate(
             schedule,
             T_W_S,
             sim,
-            sensors,
+            rig.sensors,
             sensors_to_json,
             lm_pixels,
             cams_full,
