@@ -90,74 +90,15 @@ def load_user_mesh(
     MeshError : unknown type, unparsable bytes, external references, over the caps,
         empty, non-finite, bad scale or up axis.
     """
-    ft = str(file_type).lower().lstrip(".")
-    if ft not in FILE_TYPES:
-        raise MeshError(f"unsupported mesh type {file_type!r}; use one of {FILE_TYPES}")
-    if up not in _UP:
-        raise MeshError(f"up must be one of {sorted(_UP)}, got {up!r}")
-    if scale is not None and not (np.isfinite(scale) and scale > 0.0):
-        raise MeshError(f"scale must be a positive number, got {scale}")
-    if not isinstance(data, bytes | bytearray | memoryview) or len(data) == 0:
-        raise MeshError("empty upload")
+    ft = _check_arguments(data, file_type, scale, up)
     data = bytes(data)
-
     _precheck(data, ft, max_vertices, max_faces)
-    try:
-        loaded = trimesh.load(io.BytesIO(data), file_type=ft, force="scene", process=False)
-        geoms = _scene_meshes(loaded)
-    except MeshError:
-        raise
-    except Exception as e:  # trimesh raises many types on bad input
-        raise MeshError(f"could not parse the {ft} data: {type(e).__name__}: {e}") from e
-    if not geoms:
-        raise MeshError(f"the {ft} file contains no triangle mesh")
-
-    verts, faces, colors, sources = [], [], [], set()
-    offset = 0
-    for g in geoms:
-        v = np.asarray(g.vertices, dtype=np.float64)
-        f = np.asarray(g.faces, dtype=np.int64).reshape(-1, 3)
-        if len(v) == 0 or len(f) == 0:
-            continue
-        c, src = _vertex_colors(g)
-        sources.add(src)
-        verts.append(v)
-        faces.append(f + offset)
-        colors.append(c)
-        offset += len(v)
-    if not faces:
-        raise MeshError(f"the {ft} file has no faces (a point cloud or an empty mesh)")
-    v = np.concatenate(verts)
-    f = np.concatenate(faces)
-    rgb = np.concatenate(colors)
-    if len(v) > max_vertices:
-        raise MeshError(f"{len(v)} vertices, more than the cap of {max_vertices}")
-    if len(f) > max_faces:
-        raise MeshError(f"{len(f)} faces, more than the cap of {max_faces}")
-    if not np.all(np.isfinite(v)):
-        raise MeshError(f"{int((~np.isfinite(v)).any(axis=1).sum())} vertices are NaN or inf")
-    if f.min() < 0 or f.max() >= len(v):
-        raise MeshError("face indices out of range")
-
+    v, f, rgb, sources = _merged_parts(_parse(data, ft), ft)
+    _check_merged(v, f, max_vertices, max_faces)
     v = v @ _UP[up].T
     extent_file = np.ptp(v, axis=0)
-    if scale is not None:
-        v = v * scale
-    else:
-        size = float(extent_file.max())
-        if not PLAUSIBLE_SIZE_M[0] <= size <= PLAUSIBLE_SIZE_M[1]:
-            logger.warning(
-                "%s: largest extent %.4g m is implausible for an obstacle (%.2g-%.0f m): "
-                "wrong units? pass scale (e.g. 0.01 for cm, 0.001 for mm)",
-                name,
-                size,
-                *PLAUSIBLE_SIZE_M,
-            )
-    if float(np.ptp(v, axis=0).max()) <= 0.0:
-        raise MeshError("the mesh is degenerate (all vertices at one point)")
-    v[:, 2] -= v[:, 2].min()
-    v[:, :2] -= 0.5 * (v[:, :2].min(axis=0) + v[:, :2].max(axis=0))
-
+    v = _to_metres(v, extent_file, scale, name)
+    v = _on_the_ground(v)
     tm = trimesh.Trimesh(v, f, process=False)
     flipped = False
     if tm.is_watertight and tm.volume < 0.0:
@@ -183,6 +124,98 @@ def load_user_mesh(
     logger.info("user mesh %s (%s): %d vertices, %d faces, size %s m", name, ft, len(v), len(f),
                 np.round(ext, 3).tolist())  # fmt: skip
     return mesh
+
+
+def _check_arguments(data: object, file_type: str, scale: float | None, up: str) -> str:
+    """The normalised file type; MeshError for a bad type, up axis, scale or empty data."""
+    ft = str(file_type).lower().lstrip(".")
+    if ft not in FILE_TYPES:
+        raise MeshError(f"unsupported mesh type {file_type!r}; use one of {FILE_TYPES}")
+    if up not in _UP:
+        raise MeshError(f"up must be one of {sorted(_UP)}, got {up!r}")
+    if scale is not None and not (np.isfinite(scale) and scale > 0.0):
+        raise MeshError(f"scale must be a positive number, got {scale}")
+    if not isinstance(data, bytes | bytearray | memoryview) or len(data) == 0:
+        raise MeshError("empty upload")
+    return ft
+
+
+def _parse(data: bytes, ft: str) -> list[trimesh.Trimesh]:
+    """The triangle meshes of the file (trimesh, as a scene); MeshError on any failure."""
+    try:
+        loaded = trimesh.load(io.BytesIO(data), file_type=ft, force="scene", process=False)
+        geoms = _scene_meshes(loaded)
+    except MeshError:
+        raise
+    except Exception as e:  # trimesh raises many types on bad input
+        raise MeshError(f"could not parse the {ft} data: {type(e).__name__}: {e}") from e
+    if not geoms:
+        raise MeshError(f"the {ft} file contains no triangle mesh")
+    return geoms
+
+
+def _merged_parts(
+    geoms: list[trimesh.Trimesh], ft: str
+) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64], set[str]]:
+    """All non-empty parts as one mesh: vertices, faces, vertex colours (linear RGB) and
+    where the colours came from."""
+    verts, faces, colors, sources = [], [], [], set()
+    offset = 0
+    for g in geoms:
+        v = np.asarray(g.vertices, dtype=np.float64)
+        f = np.asarray(g.faces, dtype=np.int64).reshape(-1, 3)
+        if len(v) == 0 or len(f) == 0:
+            continue
+        c, src = _vertex_colors(g)
+        sources.add(src)
+        verts.append(v)
+        faces.append(f + offset)
+        colors.append(c)
+        offset += len(v)
+    if not faces:
+        raise MeshError(f"the {ft} file has no faces (a point cloud or an empty mesh)")
+    return np.concatenate(verts), np.concatenate(faces), np.concatenate(colors), sources
+
+
+def _check_merged(
+    v: NDArray[np.float64], f: NDArray[np.int64], max_vertices: int, max_faces: int
+) -> None:
+    """The caps again (on what was parsed), finite vertices, faces within range."""
+    if len(v) > max_vertices:
+        raise MeshError(f"{len(v)} vertices, more than the cap of {max_vertices}")
+    if len(f) > max_faces:
+        raise MeshError(f"{len(f)} faces, more than the cap of {max_faces}")
+    if not np.all(np.isfinite(v)):
+        raise MeshError(f"{int((~np.isfinite(v)).any(axis=1).sum())} vertices are NaN or inf")
+    if f.min() < 0 or f.max() >= len(v):
+        raise MeshError("face indices out of range")
+
+
+def _to_metres(
+    v: NDArray[np.float64], extent_file: NDArray[np.float64], scale: float | None, name: str
+) -> NDArray[np.float64]:
+    """Scaled by ``scale``, or taken as metres (with a warning when the size is implausible)."""
+    if scale is not None:
+        return v * scale
+    size = float(extent_file.max())
+    if not PLAUSIBLE_SIZE_M[0] <= size <= PLAUSIBLE_SIZE_M[1]:
+        logger.warning(
+            "%s: largest extent %.4g m is implausible for an obstacle (%.2g-%.0f m): "
+            "wrong units? pass scale (e.g. 0.01 for cm, 0.001 for mm)",
+            name,
+            size,
+            *PLAUSIBLE_SIZE_M,
+        )
+    return v
+
+
+def _on_the_ground(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Re-centred in place: min z = 0, x and y at the centre of the footprint."""
+    if float(np.ptp(v, axis=0).max()) <= 0.0:
+        raise MeshError("the mesh is degenerate (all vertices at one point)")
+    v[:, 2] -= v[:, 2].min()
+    v[:, :2] -= 0.5 * (v[:, :2].min(axis=0) + v[:, :2].max(axis=0))
+    return v
 
 
 # --------------------------------------------------------------------------------------
