@@ -311,6 +311,46 @@ def _normalized_extent(p_opt: F64, edges: NDArray[np.int64], near: float) -> F64
     return np.stack([xy.min(axis=0), xy.max(axis=0)])
 
 
+@dataclass(frozen=True)
+class _View:
+    """One render's frames: camera (optical) <- world <- object, and the sun and the world
+    up in the object frame."""
+
+    T_world_obj: F64
+    T_opt_world: F64
+    T_opt_obj: F64
+    T_obj_opt: F64
+    sun_obj: F64
+    up_obj: F64
+
+    @classmethod
+    def of(cls, cam: CameraModel, T_world_obj: F64, T_world_base: F64, light: Lighting) -> _View:
+        T_world_opt = T_world_base @ cam.T_base_opt
+        T_opt_world = invert_T(T_world_opt)
+        T_opt_obj = T_opt_world @ T_world_obj
+        R_obj_world = T_world_obj[:3, :3].T
+        return cls(
+            T_world_obj=T_world_obj,
+            T_opt_world=T_opt_world,
+            T_opt_obj=T_opt_obj,
+            T_obj_opt=invert_T(T_opt_obj),
+            sun_obj=R_obj_world @ light.sun_dir_world,
+            up_obj=R_obj_world @ np.array([0.0, 0.0, 1.0]),
+        )
+
+
+@dataclass(frozen=True)
+class _DepthPass:
+    """What the object and proxy passes share: projection, depth range, shadow map."""
+
+    P: F64
+    near: float
+    log_far: float
+    light_obj: F64
+    sm_tex: moderngl.Texture | None
+    sm_size: int
+
+
 class ObjectRenderer:
     """Renders :class:`ObjectMesh` instances into one camera's distorted image.
 
@@ -526,7 +566,6 @@ class ObjectRenderer:
         -------
         ObjectRender in the distorted image of ``self.camera`` (ROI only).
         """
-        cam = self.camera
         light = light if light is not None else Lighting()
         T_world_obj = np.asarray(T_world_obj, dtype=np.float64)
         T_world_base = np.asarray(T_world_base, dtype=np.float64)
@@ -534,72 +573,23 @@ class ObjectRenderer:
             raise ValueError("poses must be finite")
         if not near > 0:
             raise ValueError(f"near must be > 0, got {near}")
-        T_world_opt = T_world_base @ cam.T_base_opt
-        T_opt_world = invert_T(T_world_opt)
-        T_opt_obj = T_opt_world @ T_world_obj
-        T_obj_opt = invert_T(T_opt_obj)
-        R_obj_world = T_world_obj[:3, :3].T
-        sun_obj = R_obj_world @ light.sun_dir_world
-        up_obj = R_obj_world @ np.array([0.0, 0.0, 1.0])
-
-        # Anchor, distance, image motion (float64, the camera model itself).
-        p_opt_origin = T_opt_obj[:3, 3]
-        anchor_uv = cam.project_optical(p_opt_origin)[0][0]
-        distance = float(np.linalg.norm(p_opt_origin))
-        motion = np.zeros(2)
-        if np.all(np.isfinite(anchor_uv)):
-            step = 0.01  # vehicle forward by 1 cm: the object moves by -1 cm along base x
-            d_opt = cam.T_opt_base[:3, :3] @ np.array([-step, 0.0, 0.0])
-            uv2 = cam.project_optical(p_opt_origin + d_opt)[0][0]
-            if np.all(np.isfinite(uv2)):
-                motion = (uv2 - anchor_uv) / step
+        view = _View.of(self.camera, T_world_obj, T_world_base, light)
+        anchor_uv, distance, motion = self._anchor(view.T_opt_obj)
         empty = self._empty(anchor_uv, distance, motion)
 
-        # Extent: object (+ ground shadow when proxies can receive it).
-        p_opt = obj.vertices @ T_opt_obj[:3, :3].T + T_opt_obj[:3, 3]
         shadows = proxies is not None and len(proxies.faces) > 0 and light.casts_shadows
-        pts, edges = p_opt, _edges(obj.faces)
-        if shadows:
-            sp_obj = self._shadow_points_obj(obj, sun_obj, up_obj)
-            b = obj.bounds
-            corners = np.array(
-                [[b[i, 0], b[j, 1], b[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
-            )
-            extra = np.concatenate([corners, sp_obj]) @ T_opt_obj[:3, :3].T + T_opt_obj[:3, 3]
-            n0 = len(pts)
-            pts = np.concatenate([pts, extra])
-            pairs = np.stack([np.arange(8), np.arange(8, 16)], 1) + n0
-            edges = np.concatenate([edges, pairs])
-        if self.use_roi:
-            ext = _normalized_extent(pts, edges, near)
-            if ext is None:
-                return empty
-        else:
-            ext = np.stack([self._pin_lo, self._pin_hi])
-        got = self._roi_from_extent(ext)
+        pts, edges = self._extent_points(obj, view, shadows)
+        got = self._roi(pts, edges, near)
         if got is None:
             return empty
-        if not self.use_roi:
-            got = ((0, 0, cam.width, cam.height), got[1])
-        (u0, v0, u1, v1), rect = got
-
-        # Pinhole sub-window read by the ROI's remap (and covering the object's rectangle).
-        K_r = self.setup.K
-        mx = self.setup.map_x[v0:v1, u0:u1]
-        my = self.setup.map_y[v0:v1, u0:u1]
-        ok = (mx >= 0) & (my >= 0)
-        if not np.any(ok):
+        roi, rect = got
+        window = self._pinhole_window(roi, rect)
+        if window is None:
             return empty
-        pu0 = int(np.floor(max(mx[ok].min(), rect[0, 0] * K_r[0, 0] + K_r[0, 2]))) - 2
-        pu1 = int(np.ceil(min(mx[ok].max(), rect[1, 0] * K_r[0, 0] + K_r[0, 2]))) + 3
-        pv0 = int(np.floor(max(my[ok].min(), rect[0, 1] * K_r[1, 1] + K_r[1, 2]))) - 2
-        pv1 = int(np.ceil(min(my[ok].max(), rect[1, 1] * K_r[1, 1] + K_r[1, 2]))) + 3
-        pu0, pv0 = max(pu0, 0), max(pv0, 0)
-        pu1, pv1 = min(pu1, self.setup.width), min(pv1, self.setup.height)
-        if pu0 >= pu1 or pv0 >= pv1:
-            return empty
+        pu0, pv0, pu1, pv1 = window
         pw, ph = pu1 - pu0, pv1 - pv0
         s = self._supersample(pw, ph)
+        K_r = self.setup.K
         K_s = K_r.copy()
         K_s[0, 2] = s * (K_r[0, 2] - pu0 + 0.5) - 0.5
         K_s[1, 2] = s * (K_r[1, 2] - pv0 + 0.5) - 0.5
@@ -619,61 +609,164 @@ class ObjectRenderer:
         sm_size = 1
         if light.casts_shadows:
             light_obj, sm_tex, sm_size, _, texel = self._render_shadow_map(
-                obj, sun_obj, distance, obj_up=up_obj
+                obj, view.sun_obj, distance, obj_up=view.up_obj
             )
         else:
             texel = 0.0
 
         tg = self._get_targets(W_s, H_s)
         vp = (0, 0, W_s, H_s)
+        fbo = tg.fbo_obj
+        depth = _DepthPass(P, near, log_far, light_obj, sm_tex, sm_size)
+        self._draw_object(fbo, vp, obj, view, light, depth, texel)
+        if proxies is not None and len(proxies.faces):
+            self._draw_proxies(tg.fbo_proxy, vp, proxies, view, depth, shadows)
+
+        col = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=0, dtype="f4"), "f4")
+        aux = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=1, dtype="f4"), "f4")
+        col = col.reshape(H_s, W_s, 4)
+        aux = aux.reshape(H_s, W_s, 4)
+        return self._resolve(col, aux, s, (pu0, pv0), roi, anchor_uv, distance, motion)
+
+    def _anchor(self, T_opt_obj: F64) -> tuple[F64, float, F64]:
+        """The object origin's pixel, its distance (m) and its image motion (px per metre
+        of vehicle travel), in float64 through the camera model itself."""
+        cam = self.camera
+        p_opt_origin = T_opt_obj[:3, 3]
+        anchor_uv = cam.project_optical(p_opt_origin)[0][0]
+        distance = float(np.linalg.norm(p_opt_origin))
+        motion = np.zeros(2)
+        if np.all(np.isfinite(anchor_uv)):
+            step = 0.01  # vehicle forward by 1 cm: the object moves by -1 cm along base x
+            d_opt = cam.T_opt_base[:3, :3] @ np.array([-step, 0.0, 0.0])
+            uv2 = cam.project_optical(p_opt_origin + d_opt)[0][0]
+            if np.all(np.isfinite(uv2)):
+                motion = (uv2 - anchor_uv) / step
+        return anchor_uv, distance, motion
+
+    def _extent_points(
+        self, obj: ObjectMesh, view: _View, shadows: bool
+    ) -> tuple[F64, NDArray[np.int64]]:
+        """Points (optical frame) and edges whose image the render must cover: the object,
+        and its ground shadow when proxies can receive it."""
+        T_opt_obj = view.T_opt_obj
+        p_opt = obj.vertices @ T_opt_obj[:3, :3].T + T_opt_obj[:3, 3]
+        pts, edges = p_opt, _edges(obj.faces)
+        if shadows:
+            sp_obj = self._shadow_points_obj(obj, view.sun_obj, view.up_obj)
+            b = obj.bounds
+            corners = np.array(
+                [[b[i, 0], b[j, 1], b[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+            )
+            extra = np.concatenate([corners, sp_obj]) @ T_opt_obj[:3, :3].T + T_opt_obj[:3, 3]
+            n0 = len(pts)
+            pts = np.concatenate([pts, extra])
+            pairs = np.stack([np.arange(8), np.arange(8, 16)], 1) + n0
+            edges = np.concatenate([edges, pairs])
+        return pts, edges
+
+    def _roi(
+        self, pts: F64, edges: NDArray[np.int64], near: float
+    ) -> tuple[tuple[int, int, int, int], F64] | None:
+        """The distorted image's ROI and the pinhole rectangle (normalised) to render; the
+        whole image without ``use_roi``. None: nothing to render."""
+        if self.use_roi:
+            ext = _normalized_extent(pts, edges, near)
+            if ext is None:
+                return None
+        else:
+            ext = np.stack([self._pin_lo, self._pin_hi])
+        got = self._roi_from_extent(ext)
+        if got is None:
+            return None
+        if not self.use_roi:
+            got = ((0, 0, self.camera.width, self.camera.height), got[1])
+        return got
+
+    def _pinhole_window(
+        self, roi: tuple[int, int, int, int], rect: F64
+    ) -> tuple[int, int, int, int] | None:
+        """Pinhole sub-window (pu0, pv0, pu1, pv1) read by the ROI's remap (and covering
+        the object's rectangle); None when the ROI reads no pinhole pixel."""
+        u0, v0, u1, v1 = roi
+        K_r = self.setup.K
+        mx = self.setup.map_x[v0:v1, u0:u1]
+        my = self.setup.map_y[v0:v1, u0:u1]
+        ok = (mx >= 0) & (my >= 0)
+        if not np.any(ok):
+            return None
+        pu0 = int(np.floor(max(mx[ok].min(), rect[0, 0] * K_r[0, 0] + K_r[0, 2]))) - 2
+        pu1 = int(np.ceil(min(mx[ok].max(), rect[1, 0] * K_r[0, 0] + K_r[0, 2]))) + 3
+        pv0 = int(np.floor(max(my[ok].min(), rect[0, 1] * K_r[1, 1] + K_r[1, 2]))) - 2
+        pv1 = int(np.ceil(min(my[ok].max(), rect[1, 1] * K_r[1, 1] + K_r[1, 2]))) + 3
+        pu0, pv0 = max(pu0, 0), max(pv0, 0)
+        pu1, pv1 = min(pu1, self.setup.width), min(pv1, self.setup.height)
+        if pu0 >= pu1 or pv0 >= pv1:
+            return None
+        return pu0, pv0, pu1, pv1
+
+    def _draw_object(
+        self,
+        fbo: moderngl.Framebuffer,
+        vp: tuple[int, int, int, int],
+        obj: ObjectMesh,
+        view: _View,
+        light: Lighting,
+        depth: _DepthPass,
+        texel: float,
+    ) -> None:
+        """Clear the targets and draw the lit, shadowed object (colour and aux)."""
         ctx = self.ctx
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
         ctx.depth_func = "<"
-        fbo = tg.fbo_obj
         fbo.use()
         fbo.viewport = vp
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=vp)
 
         up_o = self._upload_object(obj)
         pg = self._prog_obj
-        pg["u_mvp"].write((P @ T_opt_obj).T.astype("f4").tobytes())
-        pg["u_light"].write(light_obj.T.astype("f4").tobytes())
-        pg["u_sun"].value = tuple(sun_obj)
-        pg["u_up"].value = tuple(up_obj)
-        pg["u_cam"].value = tuple(T_obj_opt[:3, 3])
+        pg["u_mvp"].write((depth.P @ view.T_opt_obj).T.astype("f4").tobytes())
+        pg["u_light"].write(depth.light_obj.T.astype("f4").tobytes())
+        pg["u_sun"].value = tuple(view.sun_obj)
+        pg["u_up"].value = tuple(view.up_obj)
+        pg["u_cam"].value = tuple(view.T_obj_opt[:3, 3])
         pg["u_sun_rgb"].value = (light.sun_intensity,) * 3
         pg["u_sky"].value = tuple(light.sky_rgb)
         pg["u_ground"].value = tuple(light.ambient_rgb)
-        pg["u_near"].value = near
-        pg["u_log_far"].value = log_far
+        pg["u_near"].value = depth.near
+        pg["u_log_far"].value = depth.log_far
         pg["u_self_bias"].value = 2.0 * texel
-        self._set_shadow_uniforms(pg, sm_tex, sm_size)
+        self._set_shadow_uniforms(pg, depth.sm_tex, depth.sm_size)
         up_o.vao.render(moderngl.TRIANGLES)
 
-        if proxies is not None and len(proxies.faces):
-            origin = np.round(T_world_obj[:3, 3] / _PROXY_ORIGIN_GRID) * _PROXY_ORIGIN_GRID
-            T_world_origin = np.eye(4)
-            T_world_origin[:3, 3] = origin
-            up_p = self._upload_proxies(proxies, origin)
-            pp = self._prog_proxy
-            T_obj_origin = invert_T(T_world_obj) @ T_world_origin
-            pp["u_mvp"].write((P @ T_opt_world @ T_world_origin).T.astype("f4").tobytes())
-            pp["u_light"].write((light_obj @ T_obj_origin).T.astype("f4").tobytes())
-            pp["u_near"].value = near
-            pp["u_log_far"].value = log_far
-            pp["u_bias"].value = PROXY_DEPTH_BIAS
-            self._set_shadow_uniforms(pp, sm_tex, sm_size if shadows else 0)
-            fbo_p = tg.fbo_proxy
-            fbo_p.use()
-            fbo_p.viewport = vp
-            up_p.vao.render(moderngl.TRIANGLES)
-
-        col = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=0, dtype="f4"), "f4")
-        aux = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=1, dtype="f4"), "f4")
-        col = col.reshape(H_s, W_s, 4)
-        aux = aux.reshape(H_s, W_s, 4)
-        return self._resolve(col, aux, s, (pu0, pv0), (u0, v0, u1, v1), anchor_uv, distance, motion)
+    def _draw_proxies(
+        self,
+        fbo_p: moderngl.Framebuffer,
+        vp: tuple[int, int, int, int],
+        proxies: ProxyMesh,
+        view: _View,
+        depth: _DepthPass,
+        shadows: bool,
+    ) -> None:
+        """Draw the proxies over the object: they occlude it and receive its shadow.
+        Uploaded relative to a grid-rounded origin near the object (float32 stays small)."""
+        T_world_obj = view.T_world_obj
+        origin = np.round(T_world_obj[:3, 3] / _PROXY_ORIGIN_GRID) * _PROXY_ORIGIN_GRID
+        T_world_origin = np.eye(4)
+        T_world_origin[:3, 3] = origin
+        up_p = self._upload_proxies(proxies, origin)
+        pp = self._prog_proxy
+        T_obj_origin = invert_T(T_world_obj) @ T_world_origin
+        pp["u_mvp"].write((depth.P @ view.T_opt_world @ T_world_origin).T.astype("f4").tobytes())
+        pp["u_light"].write((depth.light_obj @ T_obj_origin).T.astype("f4").tobytes())
+        pp["u_near"].value = depth.near
+        pp["u_log_far"].value = depth.log_far
+        pp["u_bias"].value = PROXY_DEPTH_BIAS
+        self._set_shadow_uniforms(pp, depth.sm_tex, depth.sm_size if shadows else 0)
+        fbo_p.use()
+        fbo_p.viewport = vp
+        up_p.vao.render(moderngl.TRIANGLES)
 
     def _set_shadow_uniforms(
         self, prog: moderngl.Program, tex: moderngl.Texture | None, size: int
