@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from geometry.geodesy import WorldFrame
+from geometry.pose_uncertainty import PoseInformation
 from geometry.poses import PoseTrack
 from worker.preparation.calibration_point import CalibrationPoint
 from worker.preparation.centreline import Centreline
@@ -55,6 +56,8 @@ from worker.preparation.scene_elements import Plane, Pole
 log = logging.getLogger(__name__)
 
 ARTIFACT_VERSION = 1
+#: The pose track's information matrix (:class:`~geometry.pose_uncertainty.PoseInformation`).
+INFORMATION_FILE = "pose_information.npz"
 #: Revision of the preparation's results: bumped whenever a change of the code changes what
 #: a preparation of the same sequence with the same config produces (a strategy's weights,
 #: the centreline fit...), so that artifacts cached by an older release are not reused.
@@ -103,6 +106,8 @@ class PreparedSequence:
     calibration: CalibrationPoint | None
     summary: dict[str, Any]
     references: dict[str, PoseTrack] = field(default_factory=dict)
+    #: uncertainty of ``track`` (``pose_information.npz``; None: not known)
+    information: PoseInformation | None = None
     folder: Path | None = None
     _cloud: RegisteredCloud | None = None
     _rail_points: np.ndarray | None = None
@@ -177,6 +182,8 @@ def write_files(prepared: PreparedSequence, folder: Path) -> None:
         (folder / "reference_poses").mkdir()
         for name, tr in prepared.references.items():
             tr.to_csv(folder / "reference_poses" / f"{name}.csv")
+    if prepared.information is not None:
+        (folder / INFORMATION_FILE).write_bytes(prepared.information.to_npz_bytes())
     # summary last: its presence marks a complete artifact
     _dump(folder / "summary.json", {**prepared.summary, "key": prepared.key})
 
@@ -253,8 +260,11 @@ def read_artifact(folder: str | Path) -> PreparedSequence:
     ref_dir = folder / "reference_poses"
     if ref_dir.is_dir():
         refs = {p.stem: PoseTrack.from_csv(p) for p in sorted(ref_dir.glob("*.csv"))}
+    info_file = folder / INFORMATION_FILE
+    info = PoseInformation.from_npz_bytes(info_file.read_bytes()) if info_file.is_file() else None
     return PreparedSequence(
         key=key,
+        information=info,
         world=WorldFrame.from_json(json.loads((folder / "world.json").read_text())),
         track=PoseTrack.from_csv(folder / "poses.csv"),
         centrelines=[

@@ -299,6 +299,7 @@ def run_preparation(
         calibration=cal,
         summary=summary,
         references=references,
+        information=result.information,
         _cloud=final.cloud,
         _rail_points=np.asarray(final.tracks.rail_points, dtype=np.float64).reshape(-1, 3),
     )

@@ -206,7 +206,10 @@ class AutoStrategy:
         log.info("auto chose %s: %s", chosen, reason)
         extras = dict(results[chosen].extras)
         extras.update({"chosen": chosen, "reason": reason})
-        return make_result(self.name, inp, results[chosen].track.T, health, started, extras)
+        return make_result(
+            self.name, inp, results[chosen].track.T, health, started, extras,
+            information=results[chosen].information,
+        )  # fmt: skip
 
     @staticmethod
     def _choose(scores: dict[str, float], reasons: list[str]) -> str:

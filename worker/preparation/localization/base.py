@@ -15,6 +15,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from geometry.geodesy import WorldFrame
+from geometry.pose_uncertainty import PoseInformation
 from geometry.poses import PoseTrack
 from worker.osdar.ins_tables import InsPva
 from worker.osdar.sequence import Sequence
@@ -90,6 +91,9 @@ class LocalizationResult:
     health: Health
     seconds: float
     extras: dict[str, Any] = field(default_factory=dict)
+    #: Uncertainty of the poses (None: the strategy gives none; see
+    #: :func:`~worker.preparation.localization.common.default_information`)
+    information: PoseInformation | None = None
 
 
 class Strategy(Protocol):

@@ -56,6 +56,7 @@ from scipy.sparse import coo_matrix, csc_matrix, identity
 from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
 
+from geometry.pose_uncertainty import PoseInformation
 from geometry.poses import InsToLidar, PoseTrack
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
 from worker.preparation.localization.common import (
@@ -1063,6 +1064,23 @@ def _rescale_and_solve(pb: Problem, x: F64, health: Health) -> F64:
     return x
 
 
+def information(pb: Problem, x: F64) -> PoseInformation:
+    """The solution's information matrix J^T W J (Huber weights at ``x``; frame k's
+    columns are its rotation vector then position, as :class:`PoseInformation` has them)
+    and its variance factor: the robust chi-square scale of the normalised residuals,
+    at least 1 (a solution whose residuals spread more than their sigmas is less certain
+    than its information says)."""
+    r = residuals(x, pb)
+    S = sparsity(pb)
+    J = jacobian(x, r, pb, S, _column_groups(pb.n, pb.n_knots, _frame_period(pb)))
+    a = np.abs(r)
+    c = pb.sig.huber
+    w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
+    A = (J.T.multiply(w[None, :]).tocsc() @ J).tocsc()
+    scale = max(1.0, float(np.median(r**2) / CHI2_1_MEDIAN))
+    return PoseInformation(A, pb.n, scale)
+
+
 def _block_rms(pb: Problem, x: F64) -> dict[str, float]:
     """RMS (in sigmas) of the residual blocks, for health metrics."""
     r = residuals(x, pb)
@@ -1119,6 +1137,8 @@ class FusedStrategy:
             np.max(np.linalg.norm(knots[:, 3:], axis=1))
         )
         notes = self._observability(inp, pb, health)
+        info = information(pb, x)
+        health.metrics["fused_variance_factor_global"] = info.scale
         return make_result(
             self.name,
             inp,
@@ -1126,6 +1146,7 @@ class FusedStrategy:
             health,
             started,
             extras={"ins_to_lidar": cal.to_json(), "observability": notes},
+            information=info,
         )
 
     @staticmethod

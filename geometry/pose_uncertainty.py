@@ -1,0 +1,170 @@
+"""Uncertainty of a pose track and the pixel bound it puts on a placed object.
+
+A pose track's uncertainty is kept as the information matrix (inverse covariance) of its
+per-frame perturbations, sparse as the least-squares problem that produced it: frame k
+owns columns ``6k .. 6k + 6``, a world rotation vector applied on the left of its
+rotation, then a world position offset; further columns (nuisance parameters such as an
+INS bias) may follow and are marginalised by the inversion. The covariance of two
+frames' perturbations is solved from one sparse factorisation, never formed densely.
+
+An object placed in the map near frame ``r`` and seen from frame ``i`` is off by what
+the relative pose of the two frames is off (a shift of the whole trajectory and map
+together moves neither): :func:`anchor_bound_px` propagates the 12 x 12 covariance of
+the two frames' perturbations to the anchor's pixel and returns the radius that holds
+the pixel error with ``coverage`` probability (a 2-D Gaussian along its major axis).
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import csc_matrix, diags
+from scipy.sparse.linalg import splu
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+F64 = NDArray[np.float64]
+
+#: Regularisation added to the diagonal before factorising (keeps the unobservable
+#: directions finite: they are bounded by the priors of the problem anyway).
+RIDGE = 1e-12
+#: Finite-difference steps of the pixel Jacobian: rad, m.
+STEP_ROT = 1e-6
+STEP_POS = 1e-4
+
+
+@dataclass
+class PoseInformation:
+    """Sparse information matrix of a track's per-frame perturbations (module docstring).
+
+    matrix : (m, m) with m >= 6 n_frames; scale : variance factor (>= 1) by which the
+    covariance is multiplied (the solution's own consistency: its residuals' spread).
+    """
+
+    matrix: csc_matrix
+    n_frames: int
+    scale: float = 1.0
+    _cache: dict[tuple[int, int], F64] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        m = self.matrix.shape[0]
+        if self.matrix.shape != (m, m) or m < 6 * self.n_frames:
+            raise ValueError(f"information matrix {self.matrix.shape} for {self.n_frames} frames")
+
+    @cached_property
+    def _lu(self) -> Callable[[F64], F64]:
+        A = csc_matrix(self.matrix) + RIDGE * diags(np.ones(self.matrix.shape[0]), format="csc")
+        return splu(A.tocsc()).solve
+
+    def covariance(self, r: int, i: int) -> F64:
+        """(12, 12) covariance of [dtheta_r, dp_r, dtheta_i, dp_i] (rad, m), scaled."""
+        key = (r, i)
+        if key not in self._cache:
+            m = self.matrix.shape[0]
+            cols = np.r_[6 * r : 6 * r + 6, 6 * i : 6 * i + 6]
+            E = np.zeros((m, 12))
+            E[cols, np.arange(12)] = 1.0
+            X = self._lu(E)
+            C = X[cols]
+            self._cache[key] = 0.5 * (C + C.T) * self.scale
+        return self._cache[key]
+
+    def relative_covariance(self, r: int, i: int) -> F64:
+        """(6, 6) covariance of frame i's perturbation minus frame r's, scaled, solved for
+        the difference directly (no cancellation of two large absolute covariances)."""
+        m = self.matrix.shape[0]
+        D = np.zeros((m, 6))
+        D[6 * i + np.arange(6), np.arange(6)] += 1.0
+        D[6 * r + np.arange(6), np.arange(6)] -= 1.0
+        C = D.T @ self._lu(D)
+        return 0.5 * (C + C.T) * self.scale
+
+    @classmethod
+    def independent(cls, sigma_rot: float, sigma_pos: float, n: int) -> PoseInformation:
+        """Frames with independent errors (sigma rad, m): a raw INS, a fitted centreline."""
+        w = np.tile([sigma_rot] * 3 + [sigma_pos] * 3, n) ** -2.0
+        return cls(diags(w, format="csc"), n)
+
+    @classmethod
+    def random_walk(
+        cls,
+        sigma_rot: float,
+        sigma_pos: float,
+        n: int,
+        prior_rot: float = np.radians(0.5),
+        prior_pos: float = 1.0,
+    ) -> PoseInformation:
+        """Frames chained by relative motions with independent step errors (sigma rad, m
+        per step): lidar odometry; its first frame anchored within ``prior_rot`` (rad) and
+        ``prior_pos`` (m), as an odometry anchored on the INS is."""
+        w_step = np.array([sigma_rot] * 3 + [sigma_pos] * 3) ** -2.0
+        links = np.zeros(n)
+        links[:-1] += 1.0  # the step to the next frame
+        links[1:] += 1.0  # the step from the previous one
+        main = np.repeat(links, 6) * np.tile(w_step, n)
+        main[:6] += np.array([prior_rot] * 3 + [prior_pos] * 3) ** -2.0
+        off = -np.tile(w_step, max(n - 1, 0))
+        A = diags([main, off, off], [0, 6, -6], shape=(6 * n, 6 * n), format="csc")
+        return cls(A, n)
+
+    def to_npz_bytes(self) -> bytes:
+        """The matrix and its metadata as an .npz (no pickle)."""
+        A = csc_matrix(self.matrix)
+        buf = io.BytesIO()
+        np.savez(
+            buf, data=A.data, indices=A.indices, indptr=A.indptr,
+            shape=np.array(A.shape), n_frames=np.array(self.n_frames),
+            scale=np.array(self.scale),
+        )  # fmt: skip
+        return buf.getvalue()
+
+    @classmethod
+    def from_npz_bytes(cls, data: bytes) -> PoseInformation:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            A = csc_matrix((z["data"], z["indices"], z["indptr"]), shape=tuple(z["shape"]))
+            return cls(A, int(z["n_frames"]), float(z["scale"]))
+
+
+def _perturbed(T: F64, d: F64) -> F64:
+    """``T`` (4, 4) with a left world rotation d[:3] about its origin and offset d[3:]."""
+    out = T.copy()
+    out[:3, :3] = Rotation.from_rotvec(d[:3]).as_matrix() @ T[:3, :3]
+    out[:3, 3] = T[:3, 3] + d[3:]
+    return out
+
+
+def anchor_pixel_jacobian(
+    project: Callable[[F64, F64], F64], T_r: F64, T_i: F64, p_obj: F64
+) -> F64:
+    """(2, 12) derivative of the anchor's pixel in frame i with respect to
+    [dtheta_r, dp_r, dtheta_i, dp_i]: the anchor is held in frame r's map
+    (``q = T_r^-1 p_obj``) and seen with pose ``T_i``. ``project(p_world, T_world_base)``
+    returns its (2,) pixel."""
+    q = np.linalg.solve(T_r, np.append(p_obj, 1.0))
+    base = project(p_obj, T_i)
+    J = np.zeros((2, 12))
+    steps = np.array([STEP_ROT] * 3 + [STEP_POS] * 3)
+    for c in range(12):
+        d = np.zeros(6)
+        d[c % 6] = steps[c % 6]
+        if c < 6:
+            p = (_perturbed(T_r, d) @ q)[:3]
+            uv = project(p, T_i)
+        else:
+            uv = project(p_obj, _perturbed(T_i, d))
+        J[:, c] = (uv - base) / steps[c % 6]
+    return J
+
+
+def anchor_bound_px(J: F64, cov: F64, coverage: float = 0.9) -> float:
+    """Radius (px) holding the anchor's pixel error with probability ``coverage``: the
+    (2, 12) Jacobian ``J`` propagates the (12, 12) covariance; the bound is conservative,
+    along the major axis of the 2-D error ellipse."""
+    S = J @ cov @ J.T
+    lam = float(np.max(np.linalg.eigvalsh(0.5 * (S + S.T))))
+    return float(np.sqrt(chi2.ppf(coverage, 2) * max(lam, 0.0)))

@@ -1,0 +1,83 @@
+"""Pose-track uncertainty: known covariances, the anchor's pixel Jacobian, the bound's
+coverage by Monte Carlo."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from geometry.pose_uncertainty import (
+    PoseInformation,
+    _perturbed,
+    anchor_bound_px,
+    anchor_pixel_jacobian,
+)
+
+F = 5000.0  # focal length (px) of the test camera, looking along the base's x axis
+
+
+def _project(p_world: np.ndarray, T_world_base: np.ndarray) -> np.ndarray:
+    p = np.linalg.solve(T_world_base, np.append(p_world, 1.0))[:3]
+    return F * np.array([-p[1] / p[0], -p[2] / p[0]])
+
+
+def _pose(x: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3] = x
+    return T
+
+
+def test_independent_frames_have_no_cross_covariance() -> None:
+    info = PoseInformation.independent(0.001, 0.1, 5)
+    C = info.covariance(1, 3)
+    np.testing.assert_allclose(np.diag(C), [1e-6] * 3 + [1e-2] * 3 + [1e-6] * 3 + [1e-2] * 3)
+    assert np.max(np.abs(C[:6, 6:])) < 1e-12
+
+
+def test_random_walk_relative_variance_grows_with_the_lag() -> None:
+    s_rot, s_pos = 0.0002, 0.01
+    info = PoseInformation.random_walk(s_rot, s_pos, 30)
+    for r, i in ((0, 1), (3, 13), (5, 29)):
+        rel = info.relative_covariance(r, i)
+        np.testing.assert_allclose(
+            np.diag(rel), (i - r) * np.array([s_rot**2] * 3 + [s_pos**2] * 3), rtol=1e-6
+        )
+
+
+def test_npz_round_trip() -> None:
+    info = PoseInformation.random_walk(0.001, 0.01, 7)
+    info.scale = 2.5
+    back = PoseInformation.from_npz_bytes(info.to_npz_bytes())
+    assert back.n_frames == 7 and back.scale == 2.5
+    np.testing.assert_allclose(back.covariance(0, 6), info.covariance(0, 6))
+
+
+def test_pixel_jacobian_knows_a_lateral_offset() -> None:
+    """Moving the viewing frame 1 cm to the left moves an object 30 m ahead by
+    F * 0.01 / 30 px to the right; the same move of the mapping frame cancels it."""
+    T_r, T_i = _pose(0.0), _pose(10.0)
+    p_obj = np.array([40.0, 0.0, 0.0])
+    J = anchor_pixel_jacobian(_project, T_r, T_i, p_obj)
+    np.testing.assert_allclose(J[0, 6 + 4], F / 30.0, rtol=1e-4)  # dp_i along y
+    np.testing.assert_allclose(J[0, 4], -F / 30.0, rtol=1e-4)  # dp_r along y
+    assert abs(J[1, 6 + 4]) < 1e-6
+
+
+def test_the_bound_covers_90_percent_of_sampled_errors() -> None:
+    rng = np.random.default_rng(3)
+    T_r, T_i = _pose(0.0), _pose(15.0)
+    p_obj = np.array([50.0, 1.0, 0.5])
+    info = PoseInformation.random_walk(np.radians(0.01), 0.01, 20, np.radians(0.05), 0.1)
+    C = info.covariance(2, 17)
+    J = anchor_pixel_jacobian(_project, T_r, T_i, p_obj)
+    bound = anchor_bound_px(J, C, 0.9)
+    L = np.linalg.cholesky(C + 1e-18 * np.eye(12))
+    q = np.linalg.solve(T_r, np.append(p_obj, 1.0))
+    base = _project(p_obj, T_i)
+    errs = []
+    for _ in range(2000):
+        d = L @ rng.standard_normal(12)
+        p = (_perturbed(T_r, d[:6]) @ q)[:3]
+        errs.append(np.linalg.norm(_project(p, _perturbed(T_i, d[6:])) - base))
+    inside = float(np.mean(np.array(errs) <= bound))
+    # conservative along the major axis: at least 90 %, and not absurdly loose
+    assert 0.9 <= inside <= 0.995, (inside, bound)
