@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 
 from geometry.camera import CameraModel
 from geometry.geodesy import WorldFrame
+from geometry.pose_uncertainty import PoseInformation, anchor_bound_px, anchor_pixel_jacobian
 from geometry.poses import PoseTrack, reexpress
 from geometry.trajectory_error import relative_pose_errors
 from worker.evaluation.evaluate import evaluate_strategies, full_resolution_cameras
@@ -85,6 +86,10 @@ GOALS: dict[str, float] = {
     "short_anchor_jitter_p90_px": 0.5,
     # fused within 10 % of the better of ins and odometry, every lag, t and r
     "fused_vs_inputs_ratio": 1.10,
+    # per-frame AR confidence (auto's pick, both cameras, pooled frames): the true anchor
+    # error within the bound in this share of frames, median bound / median error at most
+    "bound_coverage": 0.90,
+    "bound_looseness": 3.0,
     # auto within 1.25x of the best strategy (lag 10) in this share of cells
     "auto_within_1p25_share": 0.95,
     # a result 2x worse than the best is truly bad (for the health flag's confusion)
@@ -181,14 +186,20 @@ def object_anchor(ego: Centreline, T_first: F64, travelled_m: float) -> F64:
 
 def anchor_errors(
     tracks: dict[str, PoseTrack],
+    infos: dict[str, PoseInformation | None],
     truth: PoseTrack,
     p_obj: F64,
     cams: dict[str, CameraModel],
     cam_times: dict[str, F64],
     t_ref: float,
 ) -> dict[str, dict[str, dict[str, float | None]]]:
-    """Per strategy and camera: the anchor's pixel error (mean, max) and its frame-to-frame
-    change (mean, p90, max), full resolution, over the frames where it is in view."""
+    """Per strategy and camera: the anchor's pixel error (mean, max), its frame-to-frame
+    change (mean, p90, max) and its estimated 90 % bound (coverage of the true error,
+    median bound, median error), full resolution, over the frames where it is in view.
+
+    cam_times : per camera (n,) its timestamp at each track row (NaN: none); the bound of
+    row k uses the covariance of rows 0 (the reference) and k.
+    """
     T_true_ref = truth.interpolate(np.array([t_ref]), max_extrapolation_s=0.2)[0]
     q_ref = np.linalg.solve(T_true_ref, np.append(p_obj, 1.0))
     out: dict[str, dict[str, dict[str, float | None]]] = {}
@@ -197,29 +208,62 @@ def anchor_errors(
         p_est = (T_ref @ q_ref)[:3]
         per_cam: dict[str, dict[str, float | None]] = {}
         for cam_name, cam in cams.items():
-            t = cam_times[cam_name]
-            T_est = track.interpolate(t, max_extrapolation_s=0.2)
-            T_tru = truth.interpolate(t, max_extrapolation_s=0.2)
-            e = np.full((len(t), 2), np.nan)
-            for k in range(len(t)):
-                uv_t, ok_t = cam.project_world(p_obj[None], T_tru[k])
-                uv_e, ok_e = cam.project_world(p_est[None], T_est[k])
-                inside = 0 <= uv_t[0, 0] < cam.width and 0 <= uv_t[0, 1] < cam.height
-                if ok_t[0] and ok_e[0] and inside:
-                    e[k] = uv_e[0] - uv_t[0]
-            err = np.linalg.norm(e, axis=1)
-            change = np.linalg.norm(np.diff(e, axis=0), axis=1)
-            err, change = err[np.isfinite(err)], change[np.isfinite(change)]
-            per_cam[cam_name] = {
-                "error_mean_px": _f(np.mean(err)) if len(err) else None,
-                "error_max_px": _f(np.max(err)) if len(err) else None,
-                "jitter_mean_px": _f(np.mean(change)) if len(change) else None,
-                "jitter_p90_px": _f(np.percentile(change, 90)) if len(change) else None,
-                "jitter_max_px": _f(np.max(change)) if len(change) else None,
-                "frames": len(err),
-            }
+            per_cam[cam_name] = _anchor_in_camera(
+                cam, track, infos.get(name), truth, p_obj, p_est, T_ref, cam_times[cam_name]
+            )
         out[name] = per_cam
     return out
+
+
+def _anchor_in_camera(
+    cam: CameraModel,
+    track: PoseTrack,
+    info: PoseInformation | None,
+    truth: PoseTrack,
+    p_obj: F64,
+    p_est: F64,
+    T_ref: F64,
+    t: F64,
+) -> dict[str, float | None]:
+    def project(p: F64, T: F64) -> F64:
+        uv, _ = cam.project_world(p[None], T)
+        return uv[0]
+
+    ok_t = np.isfinite(t)
+    T_est = np.full((len(t), 4, 4), np.nan)
+    T_tru = np.full((len(t), 4, 4), np.nan)
+    T_est[ok_t] = track.interpolate(t[ok_t], max_extrapolation_s=0.2)
+    T_tru[ok_t] = truth.interpolate(t[ok_t], max_extrapolation_s=0.2)
+    e = np.full((len(t), 2), np.nan)
+    bound = np.full(len(t), np.nan)
+    for k in np.flatnonzero(ok_t):
+        uv_t, uv_e = project(p_obj, T_tru[k]), project(p_est, T_est[k])
+        inside = 0 <= uv_t[0] < cam.width and 0 <= uv_t[1] < cam.height
+        if not (np.all(np.isfinite(uv_t)) and np.all(np.isfinite(uv_e)) and inside):
+            continue
+        e[k] = uv_e - uv_t
+        if info is not None:
+            J = anchor_pixel_jacobian(project, T_ref, T_est[k], p_est)
+            bound[k] = anchor_bound_px(J, info.covariance(0, int(k)))
+    err = np.linalg.norm(e, axis=1)
+    change = np.linalg.norm(np.diff(e, axis=0), axis=1)
+    have_b = np.isfinite(err) & np.isfinite(bound)
+    err_b, bnd = err[have_b], bound[have_b]
+    err, change = err[np.isfinite(err)], change[np.isfinite(change)]
+    return {
+        "error_mean_px": _f(np.mean(err)) if len(err) else None,
+        "error_max_px": _f(np.max(err)) if len(err) else None,
+        "jitter_mean_px": _f(np.mean(change)) if len(change) else None,
+        "jitter_p90_px": _f(np.percentile(change, 90)) if len(change) else None,
+        "jitter_max_px": _f(np.max(change)) if len(change) else None,
+        "frames": len(err),
+        "bound_coverage": _f(np.mean(err_b <= bnd)) if len(bnd) else None,
+        "bound_median_px": _f(np.median(bnd)) if len(bnd) else None,
+        "error_median_px": _f(np.median(err_b)) if len(bnd) else None,
+        "bound_frames": len(bnd),
+        "_errors": [float(x) for x in err_b],
+        "_bounds": [float(x) for x in bnd],
+    }
 
 
 def _f(x: Any) -> float | None:
@@ -288,12 +332,20 @@ def run_cell(cell: Cell, root: Path, *, keep: bool = False) -> dict[str, Any]:
         out["paper_error"] = str(exc)
     # the object's anchor
     cams = full_resolution_cameras(seq, list(CAMERAS))
-    cam_times = {c: seq.timestamps(c) for c in cams}
-    cam_times = {c: t[np.isfinite(t)] for c, t in cam_times.items()}
+    rows = {f: k for k, f in enumerate(inp.frames)}
+    cam_times = {}
+    for c in cams:
+        ts = seq.timestamps(c)
+        per_row = np.full(len(inp.frames), np.nan)
+        for f, tc in zip(seq.frame_indices, ts, strict=True):
+            if f in rows and np.isfinite(tc):
+                per_row[rows[f]] = tc
+        cam_times[c] = per_row
     travelled = float(np.sum(np.linalg.norm(np.diff(T_true[:, :3, 3], axis=0), axis=1)))
     p_obj = object_anchor(ego_true, T_true[0], travelled)
     in_true_world = {s: reexpress(r.track, inp.world, true_world) for s, r in results.items()}
-    anchors = anchor_errors(in_true_world, truth, p_obj, cams, cam_times, inp.times[0])
+    infos = {s: r.information for s, r in results.items()}
+    anchors = anchor_errors(in_true_world, infos, truth, p_obj, cams, cam_times, inp.times[0])
     for s in STRATEGIES:
         out["strategies"][s]["anchor"] = anchors[s]
     out["object_ahead_m"] = float(np.linalg.norm(p_obj - T_true[0, :3, 3]))
@@ -472,6 +524,23 @@ def goal_checks(cells: list[dict[str, Any]]) -> dict[str, Any]:
         "measured": share,
         "ok": share is not None and share >= GOALS["auto_within_1p25_share"],
     }
+    errs, bnds = [], []
+    for c in cells:
+        for cam in CAMERAS:
+            a = c["strategies"]["auto"]["anchor"].get(cam) or {}
+            errs += a.get("_errors", [])
+            bnds += a.get("_bounds", [])
+    e_arr, b_arr = np.asarray(errs), np.asarray(bnds)
+    cov = float(np.mean(e_arr <= b_arr)) if len(e_arr) else None
+    loose = float(np.median(b_arr) / max(np.median(e_arr), 1e-9)) if len(e_arr) else None
+    checks["confidence_bound_coverage"] = {
+        "bound": GOALS["bound_coverage"], "measured": cov, "frames": len(e_arr),
+        "ok": cov is not None and cov >= GOALS["bound_coverage"],
+    }  # fmt: skip
+    checks["confidence_bound_looseness"] = {
+        "bound": GOALS["bound_looseness"], "measured": loose,
+        "ok": loose is not None and loose <= GOALS["bound_looseness"],
+    }  # fmt: skip
     checks["auto_never_worse_than_ins"] = {
         "ok": all(never_worse_than_ins),
         "cells": len(never_worse_than_ins),
