@@ -428,13 +428,19 @@ class PoseTrack:
 
     # -- CSV --------------------------------------------------------------------------------
 
-    def to_csv(self, path: str | Path, frame_idx: ArrayLike | None = None) -> None:
+    def to_csv(
+        self,
+        path: str | Path,
+        frame_idx: ArrayLike | None = None,
+        timestamp_text: dict[int, str] | None = None,
+    ) -> None:
         """Write ``frame_idx,timestamp,x,y,z,qx,qy,qz,qw`` (ground_truth/poses.csv format).
 
-        Timestamps with 9 decimals (:func:`format_timestamp`), positions and quaternions
-        with full ``repr`` precision.
-        ``frame_idx`` (n,) defaults to the track's own ``frame_idx``, else -1 for every row
-        (a dense track whose samples are not frames).
+        Timestamps with 9 decimals (:func:`format_timestamp`), or, for the frames that
+        ``timestamp_text`` ({frame_idx: text}) has, that text exactly as the input wrote it
+        (a float64 near 1.6e9 s keeps only ~0.24 us); positions and quaternions with full
+        ``repr`` precision. ``frame_idx`` (n,) defaults to the track's own ``frame_idx``,
+        else -1 for every row (a dense track whose samples are not frames).
         """
         fi = self.frame_idx if frame_idx is None else np.asarray(frame_idx, dtype=np.int64)
         if fi is None:
@@ -448,8 +454,11 @@ class PoseTrack:
             w = csv.writer(f, lineterminator="\n")
             w.writerow(POSES_CSV_COLUMNS)
             for i in range(len(self)):
+                text = (timestamp_text or {}).get(int(fi[i]))
+                if text is None or abs(float(text) - self.timestamps[i]) > 1e-6:
+                    text = format_timestamp(self.timestamps[i])
                 w.writerow(
-                    [int(fi[i]), format_timestamp(self.timestamps[i])]
+                    [int(fi[i]), text]
                     + [repr(float(v)) for v in p[i]]
                     + [repr(float(v)) for v in q[i]]
                 )

@@ -203,3 +203,22 @@ def test_pre_registration_keeps_its_own_band_and_voxel() -> None:
     wide = cfg.with_overrides(registration={"pre_lateral_limit": None})
     assert wide.registration_kwargs(False)["lateral_limit"] is None
     assert wide.config_hash() != cfg.config_hash()
+
+
+def test_poses_csv_keeps_the_input_timestamp_strings(first_run: dict, seq_folder: Path) -> None:
+    """Every poses.csv the preparation writes has each frame's lidar timestamp exactly as
+    the labels write it (nanosecond digits included), not as float64 printed back."""
+    import csv
+
+    from worker.osdar.sequence import Sequence
+
+    seq = Sequence.open(seq_folder)
+    expected = seq.timestamp_text(seq.lidar_stream)
+    assert any(len(v.split(".")[1]) == 9 for v in expected.values())
+    for path in [
+        first_run["out"] / "poses.csv",
+        *(first_run["out"] / "reference_poses").glob("*.csv"),
+    ]:
+        with path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        assert rows and {int(r["frame_idx"]): r["timestamp"] for r in rows} == expected, path

@@ -205,6 +205,14 @@ class Sequence:
             dtype=np.float64,
         )
 
+    def timestamp_text(self, stream: str) -> dict[int, str]:
+        """Frame counter -> ``stream``'s timestamp exactly as the labels write it."""
+        return {
+            f.index: f.streams[stream].timestamp_str
+            for f in self.labels.frames
+            if stream in f.streams and f.streams[stream].timestamp_str
+        }
+
     # -- INS ----------------------------------------------------------------------------
 
     def ins(self) -> InsPva:

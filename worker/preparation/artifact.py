@@ -108,6 +108,8 @@ class PreparedSequence:
     references: dict[str, PoseTrack] = field(default_factory=dict)
     #: uncertainty of ``track`` (``pose_information.npz``; None: not known)
     information: PoseInformation | None = None
+    #: frame counter -> its lidar timestamp exactly as the input wrote it (for poses.csv)
+    timestamp_text: dict[int, str] = field(default_factory=dict)
     folder: Path | None = None
     _cloud: RegisteredCloud | None = None
     _rail_points: np.ndarray | None = None
@@ -169,7 +171,7 @@ def _save_cloud(path: Path, cloud: RegisteredCloud, rail_points: np.ndarray) -> 
 
 def write_files(prepared: PreparedSequence, folder: Path) -> None:
     """Write every artifact file into an existing empty ``folder`` (not atomic)."""
-    prepared.track.to_csv(folder / "poses.csv")
+    prepared.track.to_csv(folder / "poses.csv", timestamp_text=prepared.timestamp_text)
     _dump(folder / "world.json", prepared.world.to_json())
     _dump(folder / "centrelines.json", [c.to_json() for c in prepared.centrelines])
     _dump(folder / "planes.json", [p.to_json() for p in prepared.planes])
@@ -181,7 +183,9 @@ def write_files(prepared: PreparedSequence, folder: Path) -> None:
     if prepared.references:
         (folder / "reference_poses").mkdir()
         for name, tr in prepared.references.items():
-            tr.to_csv(folder / "reference_poses" / f"{name}.csv")
+            tr.to_csv(
+                folder / "reference_poses" / f"{name}.csv", timestamp_text=prepared.timestamp_text
+            )
     if prepared.information is not None:
         (folder / INFORMATION_FILE).write_bytes(prepared.information.to_npz_bytes())
     # summary last: its presence marks a complete artifact

@@ -300,6 +300,7 @@ def run_preparation(
         summary=summary,
         references=references,
         information=result.information,
+        timestamp_text=seq.timestamp_text(seq.lidar_stream) if seq.lidar_stream else {},
         _cloud=final.cloud,
         _rail_points=np.asarray(final.tracks.rail_points, dtype=np.float64).reshape(-1, 3),
     )
