@@ -156,6 +156,97 @@ def _entry(
     return e
 
 
+class _Pointers:
+    """The object's ``object_data_pointers``: per element name, its type, the kinds of its
+    attributes (from its first occurrence) and the frames it occurs in."""
+
+    def __init__(self) -> None:
+        self.by_name: dict[str, dict[str, Any]] = {}
+
+    def point(
+        self, name: str, kind: str, frame: int, text: dict[str, str], booleans: dict[str, bool]
+    ) -> None:
+        p = self.by_name.setdefault(
+            name,
+            {
+                "attribute_pointers": {
+                    **{k: "text" for k in text},
+                    **{k: "boolean" for k in booleans},
+                },
+                "frame_intervals": [],
+                "type": kind,
+                "_frames": [],
+            },
+        )
+        p["_frames"].append(frame)
+
+    def finish(self) -> dict[str, dict[str, Any]]:
+        for p in self.by_name.values():
+            p["frame_intervals"] = frame_intervals(p.pop("_frames"))
+        return self.by_name
+
+
+@dataclass
+class _FrameData:
+    """One frame's ``object_data`` of the object, its pointers kept up to date."""
+
+    frame_idx: int
+    seed: str
+    pointers: _Pointers
+    data: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+
+    def add(
+        self,
+        kind: str,
+        name: str,
+        cs: str,
+        val: Any,
+        uid_key: str,
+        text: dict[str, str],
+        booleans: dict[str, bool],
+        extra: dict[str, Any] | None = None,
+    ) -> None:
+        uid = str(uuid.uuid5(_NAMESPACE, f"{self.seed}/{self.frame_idx}/{uid_key}"))
+        entry = _entry(name, kind, cs, val, uid, text, booleans, extra=extra)
+        self.data.setdefault(kind, []).append(entry)
+        self.pointers.point(name, kind, self.frame_idx, text, booleans)
+
+
+def _add_lidar_elements(
+    fd: _FrameData, fa: FrameAnnotation, otype: str, lidar_cs: str, provenance: dict[str, str]
+) -> None:
+    """The cuboid and, when known, the vector of the lidar points on the object."""
+    any_occl = min((v.visible_fraction for v in fa.views.values()), default=1.0)
+    base_text = {"occlusion": occlusion_bucket(any_occl), **provenance}
+    booleans = {"isSynthetic": True}
+    cub_name = f"{lidar_cs}__cuboid__{otype}"
+    fd.add("cuboid", cub_name, lidar_cs, fa.cuboid, "cuboid", base_text, booleans)
+    if fa.lidar_indices is not None:
+        indices = [int(i) for i in fa.lidar_indices]
+        fd.add("vec", f"{lidar_cs}__vec__{otype}", lidar_cs, indices, "vec", base_text, booleans)
+
+
+def _add_camera_elements(
+    fd: _FrameData, cam: str, view: CameraView, otype: str, provenance: dict[str, str]
+) -> None:
+    """The bounding box and, for outlines of at least 3 points, the poly2d in one camera."""
+    text = {"occlusion": occlusion_bucket(view.visible_fraction), **provenance}
+    b = {"isSynthetic": True, "isTruncated": bool(view.truncated)}
+    bbox = [float(v) for v in view.bbox]
+    fd.add("bbox", f"{cam}__bbox__{otype}", cam, bbox, f"{cam}/bbox", text, b)
+    if len(view.outline) >= 6:
+        fd.add(
+            "poly2d",
+            f"{cam}__poly2d__{otype}",
+            cam,
+            view.outline,
+            f"{cam}/poly2d",
+            text,
+            b,
+            extra={"closed": True, "mode": "MODE_POLY2D_ABSOLUTE"},
+        )
+
+
 def add_object(
     labels_raw: dict[str, Any],
     *,
@@ -173,97 +264,21 @@ def add_object(
     otype = osdar_type(obj_class)
     oid = str(uuid.uuid5(_NAMESPACE, f"{seed}/object"))
     n_existing = sum(1 for o in ol.get("objects", {}).values() if "_synthetic_" in o["name"])
-    provenance_text = {"generator": "osdar-ar", "osdarArClass": obj_class}
-    pointers: dict[str, dict[str, Any]] = {}
-
-    def point(name: str, kind: str, frame: int, text: dict, booleans: dict) -> None:
-        p = pointers.setdefault(
-            name,
-            {
-                "attribute_pointers": {
-                    **{k: "text" for k in text},
-                    **{k: "boolean" for k in booleans},
-                },
-                "frame_intervals": [],
-                "type": kind,
-                "_frames": [],
-            },
-        )
-        p["_frames"].append(frame)
-
+    provenance = {"generator": "osdar-ar", "osdarArClass": obj_class}
+    pointers = _Pointers()
     for fa in frames:
         fkey = str(fa.frame_idx)
         if fkey not in ol["frames"]:
             raise KeyError(f"frame {fa.frame_idx} is not in the labels")
-        data: dict[str, list] = {}
-        any_occl = min((v.visible_fraction for v in fa.views.values()), default=1.0)
-        base_text = {"occlusion": occlusion_bucket(any_occl), **provenance_text}
-        booleans = {"isSynthetic": True}
-        cub_name = f"{lidar_cs}__cuboid__{otype}"
-        data.setdefault("cuboid", []).append(
-            _entry(
-                cub_name,
-                "cuboid",
-                lidar_cs,
-                fa.cuboid,
-                str(uuid.uuid5(_NAMESPACE, f"{seed}/{fkey}/cuboid")),
-                base_text,
-                booleans,
-            )
-        )
-        point(cub_name, "cuboid", fa.frame_idx, base_text, booleans)
-        if fa.lidar_indices is not None:
-            vec_name = f"{lidar_cs}__vec__{otype}"
-            data.setdefault("vec", []).append(
-                _entry(
-                    vec_name,
-                    "vec",
-                    lidar_cs,
-                    [int(i) for i in fa.lidar_indices],
-                    str(uuid.uuid5(_NAMESPACE, f"{seed}/{fkey}/vec")),
-                    base_text,
-                    booleans,
-                )
-            )
-            point(vec_name, "vec", fa.frame_idx, base_text, booleans)
+        fd = _FrameData(fa.frame_idx, seed, pointers)
+        _add_lidar_elements(fd, fa, otype, lidar_cs, provenance)
         for cam, view in sorted(fa.views.items()):
-            text = {"occlusion": occlusion_bucket(view.visible_fraction), **provenance_text}
-            b = {"isSynthetic": True, "isTruncated": bool(view.truncated)}
-            bb_name = f"{cam}__bbox__{otype}"
-            data.setdefault("bbox", []).append(
-                _entry(
-                    bb_name,
-                    "bbox",
-                    cam,
-                    [float(v) for v in view.bbox],
-                    str(uuid.uuid5(_NAMESPACE, f"{seed}/{fkey}/{cam}/bbox")),
-                    text,
-                    b,
-                )
-            )
-            point(bb_name, "bbox", fa.frame_idx, text, b)
-            if len(view.outline) >= 6:
-                pl_name = f"{cam}__poly2d__{otype}"
-                data.setdefault("poly2d", []).append(
-                    _entry(
-                        pl_name,
-                        "poly2d",
-                        cam,
-                        view.outline,
-                        str(uuid.uuid5(_NAMESPACE, f"{seed}/{fkey}/{cam}/poly2d")),
-                        text,
-                        b,
-                        extra={"closed": True, "mode": "MODE_POLY2D_ABSOLUTE"},
-                    )
-                )
-                point(pl_name, "poly2d", fa.frame_idx, text, b)
-        ol["frames"][fkey].setdefault("objects", {})[oid] = {"object_data": data}
-    for p in pointers.values():
-        p["frame_intervals"] = frame_intervals(p.pop("_frames"))
+            _add_camera_elements(fd, cam, view, otype, provenance)
+        ol["frames"][fkey].setdefault("objects", {})[oid] = {"object_data": fd.data}
     ol.setdefault("objects", {})[oid] = {
         "name": f"{obj_class}_synthetic_{n_existing + 1:04d}",
         "type": otype,
         "frame_intervals": frame_intervals([fa.frame_idx for fa in frames]),
-        "object_data_pointers": pointers,
+        "object_data_pointers": pointers.finish(),
     }
     return oid

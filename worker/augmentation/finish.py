@@ -80,70 +80,24 @@ def finish_augmentation(
     writer = SequenceWriter(out_folder, name=out_folder.name, overwrite=overwrite)
     try:
         tic = time.perf_counter()
-        done: set[str] = set()
-        for ch in chunks:
-            root = Path(ch.root)
-            for rel in ch.files:
-                dest = writer.root / rel
-                dest.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(root / rel, dest)
-                done.add(rel)
-        labels_rel = plan.labels_name
-        n_linked = 0
-        for rel in _input_files(seq_root):
-            if rel in done or rel == labels_rel:
-                continue
-            writer.copy_unchanged(seq_root / rel, "/" + rel)
-            n_linked += 1
+        n_linked = _assemble(writer, plan, chunks, seq_root)
         t_move = time.perf_counter() - tic
 
         tic = time.perf_counter()
-        labels = copy.deepcopy(load_labels(seq_root / labels_rel).raw)
-        anns = [r.annotation for r in records if r.annotation is not None]
-        oid = None
-        if anns:
-            oid = add_object(labels, obj_class=plan.obj_class, frames=anns, seed=_object_seed(plan))
-        else:
-            plan.warnings.append("the object is visible in no frame: no annotation added")
+        labels, oid, n_annotated = _labels_with_object(plan, records, seq_root)
         t_labels = time.perf_counter() - tic
 
-        stages = _stage_totals(chunks)
-        metrics: dict[str, Any] = {
-            "sequence": seq_root.name,
-            "output": str(out_folder),
-            "object": {
-                "class": plan.obj_class,
-                "uuid": oid,
-                **plan.info,
-            },
-            "placement": jsonable(plan.placement),
-            "T_world_obj": plan.T_world_obj.tolist(),
-            "frames": {
-                "total": len(plan.all_frames),
-                "augmented_range": len(plan.frames),
-                "annotated": len(anns),
-            },
-            "cameras": _camera_counts(plan, records),
-            "lidar": _lidar_counts(plan, records),
-            "timings_s": {
-                **{f"plan_{k}": v for k, v in plan.timings.items()},
-                **{f"frames_{k}": v for k, v in stages.items()},
-                "frames_wall": sum(ch.seconds for ch in chunks),
+        metrics = _metrics(plan, chunks, records, out_folder, oid, n_annotated)
+        metrics["timings_s"].update(
+            {
                 "assemble": t_move,
                 "labels": t_labels,
                 "linked_files": n_linked,
                 **(extra_timings or {}),
-            },
-            "warnings": list(plan.warnings),
-        }
+            }
+        )
         if evaluate and (seq_root / "ground_truth").is_dir():
-            tic = time.perf_counter()
-            try:
-                metrics["object_errors"] = evaluate_object(plan, records)
-            except (ValueError, OSError, KeyError) as exc:
-                log.warning("object evaluation failed: %s", exc)
-                metrics["object_errors"] = {"error": str(exc)}
-            metrics["timings_s"]["evaluate"] = time.perf_counter() - tic
+            _evaluate_object(metrics, plan, records)
         if plan.spec.clicks is not None or plan.info.get("calibration"):
             metrics["calibration"] = plan.info.get("calibration")
         metrics["timings_s"]["finish"] = time.perf_counter() - t_finish
@@ -153,6 +107,89 @@ def finish_augmentation(
         writer.abort()
         raise
     return metrics
+
+
+def _assemble(writer: SequenceWriter, plan: Plan, chunks: list[ChunkResult], seq_root: Path) -> int:
+    """Move the chunks' files into the output, link every other input file but the labels
+    unchanged; the number of files linked."""
+    done: set[str] = set()
+    for ch in chunks:
+        root = Path(ch.root)
+        for rel in ch.files:
+            dest = writer.root / rel
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(root / rel, dest)
+            done.add(rel)
+    n_linked = 0
+    for rel in _input_files(seq_root):
+        if rel in done or rel == plan.labels_name:
+            continue
+        writer.copy_unchanged(seq_root / rel, "/" + rel)
+        n_linked += 1
+    return n_linked
+
+
+def _labels_with_object(
+    plan: Plan, records: list[FrameRecord], seq_root: Path
+) -> tuple[dict[str, Any], str | None, int]:
+    """The input labels with the object added (where visible): labels, the object's
+    UUID (None: visible nowhere, a warning in the plan), the frames annotated."""
+    labels = copy.deepcopy(load_labels(seq_root / plan.labels_name).raw)
+    anns = [r.annotation for r in records if r.annotation is not None]
+    oid = None
+    if anns:
+        oid = add_object(labels, obj_class=plan.obj_class, frames=anns, seed=_object_seed(plan))
+    else:
+        plan.warnings.append("the object is visible in no frame: no annotation added")
+    return labels, oid, len(anns)
+
+
+def _metrics(
+    plan: Plan,
+    chunks: list[ChunkResult],
+    records: list[FrameRecord],
+    out_folder: Path,
+    oid: str | None,
+    n_annotated: int,
+) -> dict[str, Any]:
+    """metrics.json without the finishing's own timings and the evaluation."""
+    stages = _stage_totals(chunks)
+    return {
+        "sequence": Path(plan.seq_folder).name,
+        "output": str(out_folder),
+        "object": {
+            "class": plan.obj_class,
+            "uuid": oid,
+            **plan.info,
+        },
+        "placement": jsonable(plan.placement),
+        "T_world_obj": plan.T_world_obj.tolist(),
+        "frames": {
+            "total": len(plan.all_frames),
+            "augmented_range": len(plan.frames),
+            "annotated": n_annotated,
+        },
+        "cameras": _camera_counts(plan, records),
+        "lidar": _lidar_counts(plan, records),
+        "timings_s": {
+            **{f"plan_{k}": v for k, v in plan.timings.items()},
+            **{f"frames_{k}": v for k, v in stages.items()},
+            "frames_wall": sum(ch.seconds for ch in chunks),
+        },
+        "warnings": list(plan.warnings),
+    }
+
+
+def _evaluate_object(metrics: dict[str, Any], plan: Plan, records: list[FrameRecord]) -> None:
+    """The object's errors against a render with the true poses (sequences with ground
+    truth); a failure is recorded, never raised."""
+    tic = time.perf_counter()
+    try:
+        metrics["object_errors"] = evaluate_object(plan, records)
+    except (ValueError, OSError, KeyError) as exc:
+        log.warning("object evaluation failed: %s", exc)
+        metrics["object_errors"] = {"error": str(exc)}
+    metrics["timings_s"]["evaluate"] = time.perf_counter() - tic
 
 
 def _object_seed(plan: Plan) -> str:

@@ -183,14 +183,35 @@ def _speeds(track: Any, times: dict[int, float]) -> dict[int, float]:
     return out
 
 
-def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) -> Plan:
-    """Everything frame-independent (module docstring). Raises AugmentError /
-    PlacementError with a message saying what and where."""
+@dataclass
+class _Opened:
+    """The opened sequence as the plan needs it: cameras, frames and the vehicle's poses."""
 
-    timings: dict[str, float] = {}
-    warnings: list[str] = []
-    tic = time.perf_counter()
-    seq = sequence(seq_folder)
+    cam_names: list[str]
+    cams: dict[str, CameraModel]
+    lidar_stream: str | None
+    all_frames: list[int]
+    frames: list[int]
+    uris: dict[int, dict[str, str]]
+    lidar_times: dict[int, float]  # the frames' clock (the first camera's without lidar)
+    poses: dict[str, dict[int, F64]]
+
+
+def _frames_in_range(spec: AugmentSpec, all_frames: list[int]) -> list[int]:
+    if spec.frame_range is None:
+        return all_frames
+    a, b = spec.frame_range
+    frames = [f for f in all_frames if a <= f <= b]
+    if not frames:
+        raise AugmentError(
+            f"frame_range [{a}, {b}] holds no frame of the sequence "
+            f"({all_frames[0]}..{all_frames[-1]})"
+        )
+    return frames
+
+
+def _open(seq: Any, spec: AugmentSpec, track: Any, warnings: list[str]) -> _Opened:
+    """Cameras, frames, uris and the vehicle pose at every stream's timestamps."""
     try:
         cam_names = spec.camera_names(seq.cameras)
         cams = load_cameras(seq.labels.raw, cam_names)
@@ -200,17 +221,8 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
     if spec.lidar and lidar_stream is None:
         warnings.append("the sequence has no lidar files: lidar not augmented")
     all_frames = seq.frame_indices
-    frames = all_frames
-    if spec.frame_range is not None:
-        a, b = spec.frame_range
-        frames = [f for f in all_frames if a <= f <= b]
-        if not frames:
-            raise AugmentError(
-                f"frame_range [{a}, {b}] holds no frame of the sequence "
-                f"({all_frames[0]}..{all_frames[-1]})"
-            )
+    frames = _frames_in_range(spec, all_frames)
     uris = {fr.index: {name: fs.uri for name, fs in fr.streams.items()} for fr in seq.labels.frames}
-    track = prepared.track
     lidar_times = _frame_times(seq, seq.lidar_stream) if seq.lidar_stream else {}
     if not lidar_times:  # no lidar: the first camera's clock numbers the frames
         lidar_times = _frame_times(seq, cam_names[0])
@@ -224,21 +236,31 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
         }
     except ValueError as exc:
         raise AugmentError(f"the prepared poses do not cover the frames: {exc}") from exc
-    timings["open"] = time.perf_counter() - tic
+    return _Opened(cam_names, cams, lidar_stream, all_frames, frames, uris, lidar_times, poses)
 
-    tic = time.perf_counter()
-    obj = load_object(spec)
-    timings["object"] = time.perf_counter() - tic
 
-    # Placement: nominal point -> proxies around it -> snapped onto them, poles checked.
-    tic = time.perf_counter()
-    ego = prepared.ego
-    kw = {"ego": ego, "track": track, "frame_times": lidar_times, "poles": [], "obj": obj}
+def _place(
+    spec: AugmentSpec, prepared: Any, obj: ObjectMesh, view: _Opened
+) -> tuple[ResolvedPlacement, ProxyMesh]:
+    """Placement: nominal point -> proxies around it -> snapped onto them, poles checked."""
+    kw = {
+        "ego": prepared.ego,
+        "track": prepared.track,
+        "frame_times": view.lidar_times,
+        "poles": [],
+        "obj": obj,
+    }
     nominal = resolve_placement(spec.placement.to_spec(), proxies=None, **kw)
     cam_xyz = np.concatenate(
         [
-            np.stack([(T @ cams[c].T_base_opt)[:3, 3] for f, T in poses[c].items() if f in frames])
-            for c in cam_names
+            np.stack(
+                [
+                    (T @ view.cams[c].T_base_opt)[:3, 3]
+                    for f, T in view.poses[c].items()
+                    if f in view.frames
+                ]
+            )
+            for c in view.cam_names
         ]
     )
     p0 = nominal.T_world_obj[:3, 3]
@@ -247,36 +269,50 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
     proxies = build_proxies(prepared, p0, cam_xyz, ground_z=ground_z)
     kw["poles"] = list(prepared.poles)
     placed: ResolvedPlacement = resolve_placement(spec.placement.to_spec(), proxies=proxies, **kw)
-    T_world_obj = placed.T_world_obj
-    timings["placement"] = time.perf_counter() - tic
+    return placed, proxies
 
-    # Level of detail from the largest projected height over the sequence.
-    tic = time.perf_counter()
+
+def _level_of_detail(obj: ObjectMesh, view: _Opened, T_world_obj: F64) -> tuple[ObjectMesh, float]:
+    """The mesh the cameras render, simplified for the largest projected height (px) over
+    the frames, and that height."""
+    in_range = {
+        c: {f: view.poses[c][f] for f in view.frames if f in view.poses[c]} for c in view.cam_names
+    }
     h_px = _projected_height_px(
-        cams, {c: {f: poses[c][f] for f in frames if f in poses[c]} for c in cam_names},
-        T_world_obj[:3, 3] + np.array([0.0, 0.0, 0.5 * obj.size[2]]), float(obj.size[2]),
-    )  # fmt: skip
+        view.cams,
+        in_range,
+        T_world_obj[:3, 3] + np.array([0.0, 0.0, 0.5 * obj.size[2]]),
+        float(obj.size[2]),
+    )
     budget = choose_detail(h_px, float(obj.meta.get("lod_faces_per_px", FACES_PER_PX)))
     obj_render = simplify(obj, budget) if budget < len(obj.faces) else obj
-    timings["lod"] = time.perf_counter() - tic
+    return obj_render, h_px
 
-    # Lighting per camera from its first frame of the range.
-    tic = time.perf_counter()
+
+def _lights(
+    spec: AugmentSpec, prepared: Any, seq: Any, view: _Opened, warnings: list[str]
+) -> dict[str, Lighting]:
+    """Lighting per camera from its first frame of the range (sun by ephemeris if asked)."""
     sun = None
     if spec.render.sun == "ephemeris":
         w = prepared.world
-        sun = sun_dir_enu(w.latitude_deg, w.longitude_deg, lidar_times[frames[0]])
+        sun = sun_dir_enu(w.latitude_deg, w.longitude_deg, view.lidar_times[view.frames[0]])
         if sun[2] < 0.02:
             warnings.append("the sun is below the horizon at the sequence's time: no shadow")
     lights = {}
-    for c in cam_names:
-        f0 = next(f for f in frames if f in poses[c])
+    for c in view.cam_names:
+        f0 = next(f for f in view.frames if f in view.poses[c])
         img = seq.image(f0, c)
         if img.ndim == 2:
             raise AugmentError(f"camera {c} has grey images: only colour cameras are augmented")
-        lights[c] = estimate_lighting(img, cams[c], poses[c][f0], sun_dir_world=sun)
-    timings["lighting"] = time.perf_counter() - tic
+        lights[c] = estimate_lighting(img, view.cams[c], view.poses[c][f0], sun_dir_world=sun)
+    return lights
 
+
+def _render_offsets(
+    spec: AugmentSpec, prepared: Any, cams: dict[str, CameraModel], warnings: list[str]
+) -> dict[str, tuple[float, float]]:
+    """The calibration's pixel offsets if asked; warnings for what the render ignores."""
     offsets = _pixel_offsets(prepared, cams) if spec.render.pixel_offset else {}
     if spec.render.pixel_offset and not any(any(v) for v in offsets.values()):
         warnings.append("pixel_offset asked but the preparation has no clicked calibration")
@@ -284,8 +320,39 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
         warnings.append(
             f"render.scale {spec.render.scale} ignored: the output keeps the input resolution"
         )
-    origins = _lidar_origins(spec) if lidar_stream is not None else None
-    labels_name = seq.labels_path.name
+    return offsets
+
+
+def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) -> Plan:
+    """Everything frame-independent (module docstring). Raises AugmentError /
+    PlacementError with a message saying what and where."""
+
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
+    tic = time.perf_counter()
+    seq = sequence(seq_folder)
+    view = _open(seq, spec, prepared.track, warnings)
+    timings["open"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    obj = load_object(spec)
+    timings["object"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    placed, proxies = _place(spec, prepared, obj, view)
+    T_world_obj = placed.T_world_obj
+    timings["placement"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    obj_render, h_px = _level_of_detail(obj, view, T_world_obj)
+    timings["lod"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    lights = _lights(spec, prepared, seq, view, warnings)
+    timings["lighting"] = time.perf_counter() - tic
+
+    offsets = _render_offsets(spec, prepared, view.cams, warnings)
+    origins = _lidar_origins(spec) if view.lidar_stream is not None else None
     log.info(
         "plan: %s at %s (%s), %d/%d faces (%.0f px high at most), %d proxy faces",
         obj.name, np.round(T_world_obj[:3, 3], 2).tolist(), placed.surface,
@@ -294,12 +361,12 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
     return Plan(
         seq_folder=str(Path(seq_folder)),
         spec=spec,
-        frames=frames,
-        all_frames=all_frames,
-        cameras=cams,
-        lidar_stream=lidar_stream,
-        uris=uris,
-        T_world_base=poses,
+        frames=view.frames,
+        all_frames=view.all_frames,
+        cameras=view.cams,
+        lidar_stream=view.lidar_stream,
+        uris=view.uris,
+        T_world_base=view.poses,
         T_world_obj=T_world_obj,
         placement={
             "surface": placed.surface,
@@ -314,9 +381,9 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
         proxies=proxies,
         lights=lights,
         pixel_offsets=offsets,
-        speed_mps=_speeds(track, lidar_times),
+        speed_mps=_speeds(prepared.track, view.lidar_times),
         lidar_origins=origins,
-        labels_name=labels_name,
+        labels_name=seq.labels_path.name,
         timings=timings,
         warnings=warnings,
         info={
