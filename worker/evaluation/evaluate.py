@@ -524,6 +524,84 @@ def _at(truth: Any, track: Any) -> np.ndarray:
     return truth.interpolate(track.timestamps, max_extrapolation_s=0.05)
 
 
+def _clicks(
+    folder: Path,
+    seq: Any,
+    clicks: list[Any] | None,
+    cameras: list[str] | None,
+    *,
+    has_gt: bool,
+    near: float,
+    far: float,
+    click_noise_px: float,
+    seed: int,
+    max_landmarks: int,
+) -> tuple[list[Any], str]:
+    """The clicks (given, or synthetic from the ground truth) and their source; every
+    camera they name must be in the sequence."""
+    source = "file"
+    if clicks is None:
+        if not has_gt:
+            raise ValueError(f"{folder}: no clicks given and no ground_truth/ to click from")
+        source = "ground_truth"
+        cams_wanted = cameras or list(seq.cameras)
+        clicks = synthetic_clicks(
+            folder, cams_wanted, near=near, far=far, click_noise_px=click_noise_px,
+            seed=seed, max_landmarks=max_landmarks,
+        )  # fmt: skip
+    missing = sorted({c for cl in clicks for c in cl.uv} - set(seq.cameras))
+    if missing:
+        raise ClicksError(
+            f"clicks name camera(s) {', '.join(missing)} that the sequence lacks "
+            f"(it has: {', '.join(seq.cameras)})"
+        )
+    return clicks, source
+
+
+def _frame_rows(
+    strategy: str, cam_name: str, landmark: str, s: dict[str, Any]
+) -> list[dict[str, Any]]:
+    """The per-frame rows (ROW_FIELDS) of one landmark's RPE series in one camera."""
+    jit = _jitter(s["frames"], s["rpe"])
+    return [
+        {
+            "camera": cam_name,
+            "strategy": strategy,
+            "landmark": landmark,
+            "frame_idx": f,
+            "click_u": s["click"][k][0],
+            "click_v": s["click"][k][1],
+            "proj_u": s["projected"][k][0],
+            "proj_v": s["projected"][k][1],
+            "rpe_px": s["rpe"][k],
+            "jitter_px": jit[k],
+        }
+        for k, f in enumerate(s["frames"])
+    ]
+
+
+def _strategy_rpe(
+    strategy: str,
+    track: Any,
+    xyz: np.ndarray,
+    cams: dict[str, Any],
+    times: dict[str, Any],
+    clicks: list[Any],
+    dense: Any,
+    dense_radius_m: float,
+) -> tuple[dict[str, dict[str, Any]], list[dict[str, Any]]]:
+    """One strategy's RPE series: {camera: {landmark: series}} and the per-frame rows."""
+    per_cam: dict[str, dict[str, Any]] = {c: {} for c in cams}
+    rows: list[dict[str, Any]] = []
+    for cl in clicks:
+        for cam_name, s in rpe_from_clicks(
+            xyz, track, cams, times, cl, dense=dense, dense_radius_m=dense_radius_m
+        ).items():
+            per_cam[cam_name][cl.landmark] = s
+            rows += _frame_rows(strategy, cam_name, cl.landmark, s)
+    return per_cam, rows
+
+
 def evaluate_strategies(
     seq_folder: str | Path,
     tracks: dict[str, tuple[Any, np.ndarray]],
@@ -561,22 +639,10 @@ def evaluate_strategies(
     folder = Path(seq_folder)
     seq = Sequence.open(folder)
     has_gt = (folder / "ground_truth" / "landmarks.json").is_file()
-    source = "file"
-    if clicks is None:
-        if not has_gt:
-            raise ValueError(f"{folder}: no clicks given and no ground_truth/ to click from")
-        source = "ground_truth"
-        cams_wanted = cameras or list(seq.cameras)
-        clicks = synthetic_clicks(
-            folder, cams_wanted, near=near, far=far, click_noise_px=click_noise_px,
-            seed=seed, max_landmarks=max_landmarks,
-        )  # fmt: skip
-    missing = sorted({c for cl in clicks for c in cl.uv} - set(seq.cameras))
-    if missing:
-        raise ClicksError(
-            f"clicks name camera(s) {', '.join(missing)} that the sequence lacks "
-            f"(it has: {', '.join(seq.cameras)})"
-        )
+    clicks, source = _clicks(
+        folder, seq, clicks, cameras, has_gt=has_gt, near=near, far=far,
+        click_noise_px=click_noise_px, seed=seed, max_landmarks=max_landmarks,
+    )  # fmt: skip
     if cameras is None:
         cameras = sorted({c for cl in clicks for c in cl.uv})
     cams = full_resolution_cameras(seq, cameras)
@@ -598,29 +664,11 @@ def evaluate_strategies(
     rows: list[dict[str, Any]] = []
     clouds = _frame_clouds(seq) if dense_radius_m > 0 else None
     for strategy, (track, xyz) in tracks.items():
-        per_cam: dict[str, dict[str, Any]] = {c: {} for c in cams}
         dense = None if clouds is None else dense_points(seq, track, clouds)
-        for cl in clicks:
-            for cam_name, s in rpe_from_clicks(
-                xyz, track, cams, times, cl, dense=dense, dense_radius_m=dense_radius_m
-            ).items():
-                per_cam[cam_name][cl.landmark] = s
-                jit = _jitter(s["frames"], s["rpe"])
-                for k, f in enumerate(s["frames"]):
-                    rows.append(
-                        {
-                            "camera": cam_name,
-                            "strategy": strategy,
-                            "landmark": cl.landmark,
-                            "frame_idx": f,
-                            "click_u": s["click"][k][0],
-                            "click_v": s["click"][k][1],
-                            "proj_u": s["projected"][k][0],
-                            "proj_v": s["projected"][k][1],
-                            "rpe_px": s["rpe"][k],
-                            "jitter_px": jit[k],
-                        }
-                    )
+        per_cam, strategy_rows = _strategy_rpe(
+            strategy, track, xyz, cams, times, clicks, dense, dense_radius_m
+        )
+        rows += strategy_rows
         for cam_name, lms in per_cam.items():
             metrics["rpe"].setdefault(cam_name, {})[strategy] = summarize_rpe(lms)
     if has_gt:
