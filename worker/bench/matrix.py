@@ -109,12 +109,16 @@ class Cell:
     profile: str
     seed: int
     motion: str = "moving"  # moving | slow | stationary
+    #: per-lidar merge calibration error: None the profile's default (osdar23: on), or
+    #: False (off)
+    merge_error: bool | None = None
 
     @property
     def name(self) -> str:
-        return f"{self.scene}-f{self.frames}-d{self.density:g}-{self.profile}-s{self.seed}" + (
-            "" if self.motion == "moving" else f"-{self.motion}"
-        )
+        name = f"{self.scene}-f{self.frames}-d{self.density:g}-{self.profile}-s{self.seed}"
+        if self.motion != "moving":
+            name += f"-{self.motion}"
+        return name + ("-nomerge" if self.merge_error is False else "")
 
     def synth_config(self) -> SynthConfig:
         return SynthConfig(
@@ -126,6 +130,7 @@ class Cell:
             ins_profile=self.profile,
             speed_mps=SLOW_SPEED_MPS if self.motion == "slow" else None,
             stationary=self.motion == "stationary",
+            lidar_merge_error=(0.0, 0.0) if self.merge_error is False else None,
         )
 
 
@@ -135,7 +140,8 @@ def design(quick: bool = False) -> list[Cell]:
     Full: 7 scenes x 5 lengths, each (scene, length) pair once, with (density, profile,
     seed) cycling through their 12 combinations so every level of every factor appears
     with every scene and every length; plus a slow and a standing variant of every scene
-    (35 + 14 = 49 cells, about an hour here).
+    and two scenes' 60-frame osdar23 cells with and without the per-lidar merge error
+    (35 + 14 + 4 = 53 cells, about an hour here).
     Quick (CI): 8 cells covering every scene, every length but 100, both densities, all
     three profiles, both seeds and both variants.
     """
@@ -162,6 +168,10 @@ def design(quick: bool = False) -> list[Cell]:
         d, p, s = combos[(7 * i + 5) % len(combos)]
         cells.append(Cell(scene, 35, d, p, s, "slow"))
         cells.append(Cell(scene, 20, d, p, (s + 1) % 2, "stationary"))
+    # the merged clouds' calibration error (on in every osdar23 cell) against none
+    for scene in ("fire_site", "klein_flottbek"):
+        cells.append(Cell(scene, 60, 1.0, "osdar23", 0, merge_error=False))
+        cells.append(Cell(scene, 60, 1.0, "osdar23", 0))
     return cells
 
 

@@ -77,6 +77,10 @@ class SynthConfig:
     cameras: tuple[str, ...] = DEFAULT_CAMERAS
     lidar_density: float = 1.0
     ins_profile: str = "paper"
+    #: Per-lidar error of the calibration the merged clouds are made with: (rotation deg,
+    #: translation m) standard deviations per axis; None: the INS profile's default
+    #: (:data:`MERGE_ERROR_BY_PROFILE`: "osdar23" has it, as real merged clouds do).
+    lidar_merge_error: tuple[float, float] | None = None
     ins_overrides: dict[str, Any] = field(default_factory=dict)
     speed_mps: float | None = None  # None: the scene's own speed
     stationary: bool = False
@@ -320,6 +324,30 @@ def _build_scene(cfg: SynthConfig, duration: float) -> tuple[Scene, float, float
     return scene, speed, s0, offset
 
 
+#: Default per-lidar merge error (deg, m) by INS profile: real OSDaR23 clouds are merged
+#: from six lidars whose extrinsics are good to a few hundredths of a degree and a
+#: centimetre or two.
+MERGE_ERROR_BY_PROFILE = {"osdar23": (0.03, 0.015)}
+
+
+def merge_errors(cfg: SynthConfig, sensor_indices: list[int]) -> dict[int, F64]:
+    """sensor_index -> (4, 4) merge error transform (deterministic in the seed)."""
+    sig = cfg.lidar_merge_error
+    if sig is None:
+        sig = MERGE_ERROR_BY_PROFILE.get(cfg.ins_profile, (0.0, 0.0))
+    rot_deg, trans_m = sig
+    if rot_deg <= 0 and trans_m <= 0:
+        return {}
+    rng = np.random.default_rng([cfg.seed, 0x6D65726765])  # "merge"
+    out = {}
+    for s in sensor_indices:
+        E = np.eye(4)
+        E[:3, :3] = Rotation.from_rotvec(np.radians(rot_deg) * rng.standard_normal(3)).as_matrix()
+        E[:3, 3] = trans_m * rng.standard_normal(3)
+        out[int(s)] = E
+    return out
+
+
 def _make_rig(
     cfg: SynthConfig,
     scene: Scene,
@@ -339,6 +367,7 @@ def _make_rig(
         origin=traj(np.array([t0]))[0, :3, 3],
         seed=cfg.seed,
         density=cfg.lidar_density,
+        merge_errors=merge_errors(cfg, [s.sensor_index for s in sensors]),
     )
     vis = LandmarkVisibility(scene.mesh, origin=traj(np.array([t0]))[0, :3, 3])
     return _Rig(scene, traj, T_ref_S, cams_full, camsim, sensors, lidar, vis)
@@ -547,6 +576,8 @@ def _write_ground_truth(
     _dump(gt / "world.json", sim.world.to_json())
     _dump(gt / "ins_to_lidar.json", sim.ins_to_lidar.to_json())
     _dump(gt / "lidar_origins.json", sensors_to_json(sensors))
+    errors = merge_errors(cfg, [s.sensor_index for s in sensors])
+    _dump(gt / "lidar_merge_errors.json", {str(k): v.tolist() for k, v in errors.items()})
     cl = []
     for tr in scene.tracks:
         s = np.arange(0.0, tr.length, 1.0)

@@ -376,6 +376,7 @@ class LidarSimulator:
         seed: int = 0,
         density: float = 1.0,
         nthreads: int = 0,
+        merge_errors: dict[int, F64] | None = None,
     ) -> None:
         if not 0.0 < density <= 1.0:
             raise ValueError(f"density must be in (0, 1], got {density}")
@@ -392,6 +393,10 @@ class LidarSimulator:
         self.seed = int(seed)
         self.density = float(density)
         self.nthreads = int(nthreads)
+        #: sensor_index -> (4, 4) error of the calibration the clouds are merged with:
+        #: each sensor's points land at ``E @ p_base`` instead of ``p_base``
+        self.merge_errors = {int(k): np.asarray(v, dtype=np.float64).reshape(4, 4)
+                             for k, v in (merge_errors or {}).items()}  # fmt: skip
         self._face_material = mesh.material
         self._reflectivity = np.array([m.reflectivity for m in MATERIALS], dtype=np.float64)
 
@@ -468,7 +473,7 @@ class LidarSimulator:
         T_base_world_ft = invert_T(T_world_base_ft)
         R_bw = T_base_world_ft[:3, :3]
         t_bw = T_base_world_ft[:3, 3] + R_bw @ self.origin  # maps origin-relative points
-        p_base = p_world_rel @ R_bw.T + t_bw
+        p_base = self._merged(p_world_rel @ R_bw.T + t_bw, ret.which)
         origin_base = o_w_rel @ R_bw.T + t_bw
         dir_base = d_w @ R_bw.T
 
@@ -500,6 +505,20 @@ class LidarSimulator:
             len(ret.idx),
         )
         return cloud, truth
+
+    def _merged(self, p_base: F64, which: NDArray[np.int64]) -> F64:
+        """The points as a merge with an imperfect calibration places them: sensor s's
+        points moved by its ``merge_errors`` transform (the ground truth stays exact)."""
+        if not self.merge_errors:
+            return p_base
+        out = p_base.copy()
+        for k, s in enumerate(self.sensors):
+            E = self.merge_errors.get(s.sensor_index)
+            if E is None:
+                continue
+            sel = which == k
+            out[sel] = p_base[sel] @ E[:3, :3].T + E[:3, 3]
+        return out
 
     def _emit(self, frame_time: float) -> tuple[F64, NDArray[np.int64], F64]:
         """Rays of every sensor in its own frame: emission times relative to frame_time
