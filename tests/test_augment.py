@@ -214,6 +214,49 @@ def test_cli_augment_end_to_end(seq: Path, cli_cache: Path, tmp_path: Path, caps
             assert (out / rel / p.name).read_bytes() == p.read_bytes()
 
 
+def test_labels_carry_a_placement_bound_per_frame_and_camera(
+    seq: Path, cli_cache: Path, tmp_path: Path
+) -> None:
+    """A real preparation gives pose information: every bbox of the object carries the
+    90 % placement bound (px) as a num attribute that raillabel reads, and the metrics
+    summarise it per camera."""
+    import raillabel
+
+    from worker.augmentation.annotations import PLACEMENT_BOUND_ATTRIBUTE
+
+    out = tmp_path / "fire_bound"
+    rc = main(
+        ["augment", str(seq), "--object", "person", "--place", "s=22,offset=0,yaw=90",
+         "--out", str(out), "--cache-dir", str(cli_cache)]
+    )  # fmt: skip
+    assert rc == 0
+    labels_path = next(out.glob("*_labels.json"))
+    raw = json.loads(labels_path.read_text())
+    oid = next(k for k, o in raw["openlabel"]["objects"].items() if "_synthetic_" in o["name"])
+    bounds = []
+    for frame in raw["openlabel"]["frames"].values():
+        data = (frame.get("objects") or {}).get(oid, {}).get("object_data", {})
+        for bbox in data.get("bbox", []):
+            nums = {a["name"]: a["val"] for a in bbox["attributes"]["num"]}
+            bounds.append(nums[PLACEMENT_BOUND_ATTRIBUTE])
+    assert bounds and all(np.isfinite(b) and 0.0 < b < 1000.0 for b in bounds)
+    pointers = raw["openlabel"]["objects"][oid]["object_data_pointers"]
+    assert any(
+        p["attribute_pointers"].get(PLACEMENT_BOUND_ATTRIBUTE) == "num" for p in pointers.values()
+    )
+    scene = raillabel.load(labels_path)
+    loaded = [
+        a.attributes[PLACEMENT_BOUND_ATTRIBUTE]
+        for fr in scene.frames.values()
+        for a in fr.annotations.values()
+        if PLACEMENT_BOUND_ATTRIBUTE in a.attributes
+    ]
+    assert sorted(loaded) == pytest.approx(sorted(bounds))
+    m = json.loads((out / "metrics.json").read_text())
+    summary = [s for s in m["placement_bound_px"].values() if s]
+    assert summary and all(s["median"] > 0 and s["frames"] > 0 for s in summary)
+
+
 @pytest.mark.parametrize(
     ("args", "needle"),
     [

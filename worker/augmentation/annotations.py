@@ -55,6 +55,11 @@ def occlusion_bucket(visible_fraction: float) -> str:
     return "100 %"
 
 
+#: Name of the per-frame ``num`` attribute of a camera's bbox: the 90 % bound (px) on the
+#: object's placement error in that camera (OSDaR23 attributes are camelCase).
+PLACEMENT_BOUND_ATTRIBUTE = "arPlacementBoundPx"
+
+
 @dataclass
 class CameraView:
     """What one camera sees of the object in one frame (full-image pixel coordinates)."""
@@ -63,6 +68,9 @@ class CameraView:
     outline: list[float]  # flat [x0, y0, x1, y1, ...], closed
     visible_fraction: float
     truncated: bool
+    #: 90 % bound (px) on the object's placement error in this camera
+    #: (:mod:`~worker.augmentation.confidence`); None: not known
+    placement_bound_px: float | None = None
 
 
 @dataclass
@@ -137,6 +145,7 @@ def _entry(
     text: dict[str, str],
     booleans: dict[str, bool],
     extra: dict[str, Any] | None = None,
+    numbers: dict[str, float] | None = None,
 ) -> dict[str, Any]:
     e: dict[str, Any] = {"name": name, "val": val}
     if extra:
@@ -147,7 +156,7 @@ def _entry(
             "uid": uid,
             "attributes": {
                 "boolean": [{"name": k, "val": v} for k, v in booleans.items()],
-                "num": [],
+                "num": [{"name": k, "val": float(v)} for k, v in (numbers or {}).items()],
                 "text": [{"name": k, "val": v} for k, v in text.items()],
                 "vec": [],
             },
@@ -164,20 +173,26 @@ class _Pointers:
         self.by_name: dict[str, dict[str, Any]] = {}
 
     def point(
-        self, name: str, kind: str, frame: int, text: dict[str, str], booleans: dict[str, bool]
+        self,
+        name: str,
+        kind: str,
+        frame: int,
+        text: dict[str, str],
+        booleans: dict[str, bool],
+        numbers: dict[str, float] | None = None,
     ) -> None:
         p = self.by_name.setdefault(
             name,
             {
-                "attribute_pointers": {
-                    **{k: "text" for k in text},
-                    **{k: "boolean" for k in booleans},
-                },
+                "attribute_pointers": {},
                 "frame_intervals": [],
                 "type": kind,
                 "_frames": [],
             },
         )
+        kinds = {**{k: "text" for k in text}, **{k: "boolean" for k in booleans}}
+        kinds.update({k: "num" for k in numbers or {}})
+        p["attribute_pointers"].update(kinds)
         p["_frames"].append(frame)
 
     def finish(self) -> dict[str, dict[str, Any]]:
@@ -205,11 +220,12 @@ class _FrameData:
         text: dict[str, str],
         booleans: dict[str, bool],
         extra: dict[str, Any] | None = None,
+        numbers: dict[str, float] | None = None,
     ) -> None:
         uid = str(uuid.uuid5(_NAMESPACE, f"{self.seed}/{self.frame_idx}/{uid_key}"))
-        entry = _entry(name, kind, cs, val, uid, text, booleans, extra=extra)
+        entry = _entry(name, kind, cs, val, uid, text, booleans, extra=extra, numbers=numbers)
         self.data.setdefault(kind, []).append(entry)
-        self.pointers.point(name, kind, self.frame_idx, text, booleans)
+        self.pointers.point(name, kind, self.frame_idx, text, booleans, numbers)
 
 
 def _add_lidar_elements(
@@ -233,7 +249,11 @@ def _add_camera_elements(
     text = {"occlusion": occlusion_bucket(view.visible_fraction), **provenance}
     b = {"isSynthetic": True, "isTruncated": bool(view.truncated)}
     bbox = [float(v) for v in view.bbox]
-    fd.add("bbox", f"{cam}__bbox__{otype}", cam, bbox, f"{cam}/bbox", text, b)
+    nums = (
+        None if view.placement_bound_px is None
+        else {PLACEMENT_BOUND_ATTRIBUTE: round(view.placement_bound_px, 3)}
+    )  # fmt: skip
+    fd.add("bbox", f"{cam}__bbox__{otype}", cam, bbox, f"{cam}/bbox", text, b, numbers=nums)
     if len(view.outline) >= 6:
         fd.add(
             "poly2d",

@@ -171,6 +171,7 @@ def _metrics(
         },
         "cameras": _camera_counts(plan, records),
         "lidar": _lidar_counts(plan, records),
+        "placement_bound_px": _bound_summary(plan, records),
         "timings_s": {
             **{f"plan_{k}": v for k, v in plan.timings.items()},
             **{f"frames_{k}": v for k, v in stages.items()},
@@ -196,6 +197,25 @@ def _object_seed(plan: Plan) -> str:
     return f"osdar-ar/{Path(plan.seq_folder).name}/{plan.obj_class}/" + ",".join(
         f"{v:.3f}" for v in plan.T_world_obj[:3, 3]
     )
+
+
+def _bound_summary(plan: Plan, records: list[FrameRecord]) -> dict[str, Any]:
+    """Per camera, the 90 % placement bound (px) over the frames the object is visible in:
+    median, p90, max (confidence.py; the labels carry it per frame)."""
+    out: dict[str, Any] = {}
+    for c in plan.cameras:
+        b = [
+            plan.placement_bounds[r.frame_idx][c]
+            for r in records
+            if c in r.cameras and r.cameras[c].visible
+            and c in plan.placement_bounds.get(r.frame_idx, {})
+        ]  # fmt: skip
+        out[c] = (
+            {"median": float(np.median(b)), "p90": float(np.percentile(b, 90)),
+             "max": float(np.max(b)), "frames": len(b)}
+            if b else None
+        )  # fmt: skip
+    return out
 
 
 def _camera_counts(plan: Plan, records: list[FrameRecord]) -> dict[str, Any]:

@@ -141,7 +141,7 @@ def _shift_view(view: CameraView, d: tuple[float, float]) -> CameraView:
         return view
     bb = (view.bbox[0] + d[0], view.bbox[1] + d[1], view.bbox[2], view.bbox[3])
     out = [v + d[i % 2] for i, v in enumerate(view.outline)]
-    return CameraView(bb, out, view.visible_fraction, view.truncated)
+    return CameraView(bb, out, view.visible_fraction, view.truncated, view.placement_bound_px)
 
 
 def _truncated(cam: CameraModel, obj: ObjectMesh, T_world_obj: F64, T_world_base: F64) -> bool:
@@ -270,6 +270,7 @@ def _camera_frame(
                 outline,
                 float(render.visible_fraction),
                 trunc,
+                plan.placement_bounds.get(frame, {}).get(name),
             ),
             offset,
         )

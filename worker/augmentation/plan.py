@@ -22,6 +22,7 @@ from renderer.assets.lod import FACES_PER_PX
 from renderer.lidar_cast import origins_from_json
 from renderer.lighting import Lighting, estimate_lighting, sun_dir_enu
 from renderer.mesh import ObjectMesh, ProxyMesh
+from worker.augmentation.confidence import placement_bounds
 from worker.augmentation.placement import (
     RAIL_HEIGHT_ABOVE_BED,
     ResolvedPlacement,
@@ -79,6 +80,8 @@ class Plan:
     timings: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+    #: frame -> camera -> 90 % bound (px) on the placement error (confidence.py)
+    placement_bounds: dict[int, dict[str, float]] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------------- planning
@@ -395,4 +398,8 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
             "strategy": getattr(prepared, "strategy", ""),
             "world": prepared.world.to_json(),
         },
-    )
+        placement_bounds=placement_bounds(
+            prepared.track, getattr(prepared, "information", None), view.cams, view.poses,
+            T_world_obj, view.frames,
+        ),
+    )  # fmt: skip
