@@ -89,17 +89,41 @@ def run_bench(
         _write(result, json_path)
         return result
 
+    rows, seqs, prepared_first = _paper_sequences(s, workdir)
+    result["rows"] = rows
+    _print_paper_table(s, rows)
+    result["goal"] = goal_check(rows)
+    _print_goal(result["goal"])
+    result.update(_speed_against_error(s, rows, seqs[s.scenes[0]], workdir, quick))
+    if floor and prepared_first:
+        fr = _floor(s, seqs[s.scenes[0]], prepared_first, workdir, quick)
+        result["floor_ratio"] = fr["floor_ratio"]
+        result["floor"] = fr
+    else:
+        result["floor_ratio"] = None
+    result["seconds"] = time.perf_counter() - t_start
+    _print(f"\nbench done in {result['seconds']:.0f} s")
+    _write(result, json_path)
+    return result
+
+
+def _paper_sequences(
+    s: BenchSettings, workdir: Path
+) -> tuple[list[dict[str, Any]], dict[str, Path], dict[str, Any]]:
+    """Every scene's sequence made and evaluated with every strategy: the table's rows, the
+    sequences, and the first sequence's prepared strategies. Writes the per-frame CSVs."""
     rows: list[dict[str, Any]] = []
-    evaluations = {}
     prepared_first: dict[str, Any] = {}
     seqs = {}
     for k, scene in enumerate(s.scenes):
         seqs[scene] = make_sequence(workdir / "seqs", scene, s)
         r, ev = run_sequence(seqs[scene], scene, s, prepared_first if k == 0 else None)
         rows += r
-        evaluations[scene] = ev
         _write_per_frame(workdir / "per_frame" / f"{scene}.csv", ev["per_frame"])
-    result["rows"] = rows
+    return rows, seqs, prepared_first
+
+
+def _print_paper_table(s: BenchSettings, rows: list[dict[str, Any]]) -> None:
     _print(
         f"RPE / jitter, mean±std px at full resolution ({s.frames} frames, landmarks 30-80 m "
         "ahead clicked at their true pixels); [the paper's value] for ins, odometry (odo), "
@@ -110,20 +134,27 @@ def run_bench(
     for strat in s.strategies:
         sec = sorted(r["seconds"] for r in rows if r["strategy"] == strat)
         _print(f"  {strat:<9} {sec[len(sec) // 2]:7.1f} s")
-    result["goal"] = goal_check(rows)
-    g = result["goal"]
-    if g:
-        _print(
-            f"\ngoal on {g['camera']}: best strategy {g['best_strategy']}: RPE "
-            f"{g['best_rpe_mean']:.2f} px (goal <= {g['rpe_goal']}), jitter "
-            f"{g['best_jitter_mean']:.2f} px (goal <= {g['jitter_goal']}): "
-            f"{'met' if g['met'] else 'NOT met'}"
-        )
-        if "ins_rpe_mean" in g:
-            lo, hi = g["ins_paper_band"]
-            _print(f"raw INS RPE {g['ins_rpe_mean']:.1f} px; the paper's band {lo:.1f}-{hi:.1f} px")
 
-    # speed against error on the first sequence
+
+def _print_goal(g: dict[str, Any]) -> None:
+    if not g:
+        return
+    _print(
+        f"\ngoal on {g['camera']}: best strategy {g['best_strategy']}: RPE "
+        f"{g['best_rpe_mean']:.2f} px (goal <= {g['rpe_goal']}), jitter "
+        f"{g['best_jitter_mean']:.2f} px (goal <= {g['jitter_goal']}): "
+        f"{'met' if g['met'] else 'NOT met'}"
+    )
+    if "ins_rpe_mean" in g:
+        lo, hi = g["ins_paper_band"]
+        _print(f"raw INS RPE {g['ins_rpe_mean']:.1f} px; the paper's band {lo:.1f}-{hi:.1f} px")
+
+
+def _speed_against_error(
+    s: BenchSettings, rows: list[dict[str, Any]], seq: Path, workdir: Path, quick: bool
+) -> dict[str, Any]:
+    """Speed against error on the first sequence: every configuration, the Pareto front
+    (printed, plotted, written to pareto.csv); the result's pareto_all, pareto, files."""
     first = s.scenes[0]
     known = {
         config_name(r["strategy"], s.voxel_size): {
@@ -136,12 +167,8 @@ def run_bench(
     }
     configs = list(PARETO_QUICK if quick else PARETO_FULL)
     configs += [(st, s.voxel_size) for st in s.strategies if (st, s.voxel_size) not in configs]
-    pareto_rows = run_configs(seqs[first], configs, known=known)
+    pareto_rows = run_configs(seq, configs, known=known)
     front = pareto_front(pareto_rows)
-    result["pareto_all"] = pareto_rows
-    result["pareto"] = [
-        {"config": r["config"], "seconds": r["seconds"], "error_px": r["error_px"]} for r in front
-    ]
     _print(f"\nspeed against error ({first}, rgb_highres_center RPE, preparation seconds):")
     _print("config                 seconds  error_px  jitter_px  front")
     for r in sorted(pareto_rows, key=lambda r: r["seconds"]):
@@ -150,28 +177,32 @@ def run_bench(
         jit = "-" if r["jitter_px"] is None else f"{r['jitter_px']:8.2f}"
         _print(f"{r['config']:<22} {r['seconds']:7.1f}  {err}  {jit}   {on}")
     plot = plot_pareto(pareto_rows, workdir / "pareto.png", f"speed against error, {first}")
-    result["files"] = {"pareto_png": str(plot) if plot else None}
     _write_csv(workdir / "pareto.csv", pareto_rows)
+    return {
+        "pareto_all": pareto_rows,
+        "pareto": [
+            {"config": r["config"], "seconds": r["seconds"], "error_px": r["error_px"]}
+            for r in front
+        ],
+        "files": {"pareto_png": str(plot) if plot else None},
+    }
 
-    if floor and prepared_first:
-        strat = "fused" if "fused" in prepared_first else next(iter(prepared_first))
-        fr = floor_ratio(
-            seqs[first], prepared_first[strat], workdir / "floor_scratch",
-            workers=1 if quick else 2, runs=1 if quick else 3,
-        )  # fmt: skip
-        result["floor_ratio"] = fr["floor_ratio"]
-        result["floor"] = fr
-        _print(
-            f"\nI/O floor ({first}, {fr['frames']} frames, {fr['workers']} worker(s)): job "
-            f"{fr['job_s']:.2f} s, floor {fr['floor_s']:.2f} s, job / floor = "
-            f"{fr['floor_ratio']:.2f}"
-        )
-    else:
-        result["floor_ratio"] = None
-    result["seconds"] = time.perf_counter() - t_start
-    _print(f"\nbench done in {result['seconds']:.0f} s")
-    _write(result, json_path)
-    return result
+
+def _floor(
+    s: BenchSettings, seq: Path, prepared_first: dict[str, Any], workdir: Path, quick: bool
+) -> dict[str, Any]:
+    """The augmentation job against its I/O floor on the first sequence (printed)."""
+    strat = "fused" if "fused" in prepared_first else next(iter(prepared_first))
+    fr = floor_ratio(
+        seq, prepared_first[strat], workdir / "floor_scratch",
+        workers=1 if quick else 2, runs=1 if quick else 3,
+    )  # fmt: skip
+    _print(
+        f"\nI/O floor ({s.scenes[0]}, {fr['frames']} frames, {fr['workers']} worker(s)): job "
+        f"{fr['job_s']:.2f} s, floor {fr['floor_s']:.2f} s, job / floor = "
+        f"{fr['floor_ratio']:.2f}"
+    )
+    return fr
 
 
 def _write_per_frame(path: Path, rows: list[dict[str, Any]]) -> None:
