@@ -109,7 +109,8 @@ class PoseInformation:
         main = np.repeat(links, 6) * np.tile(w_step, n)
         main[:6] += np.array([prior_rot] * 3 + [prior_pos] * 3) ** -2.0
         off = -np.tile(w_step, max(n - 1, 0))
-        A = diags([main, off, off], [0, 6, -6], shape=(6 * n, 6 * n), format="csc")
+        # scipy-stubs types diags' diagonals as sequences of numbers, not a list of arrays
+        A = diags([main, off, off], [0, 6, -6], shape=(6 * n, 6 * n), format="csc")  # type: ignore[call-overload]
         return cls(A, n)
 
     def to_npz_bytes(self) -> bytes:

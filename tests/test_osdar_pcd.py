@@ -219,4 +219,3 @@ def test_lzf_round_trip(n: int) -> None:
     ]
     for data in samples:
         assert lzf_decompress(lzf_compress(data), n) == data
-
