@@ -62,7 +62,7 @@ from worker.preparation.localization import odometry_track, run_strategy
 from worker.preparation.localization.anchor import anchored_to_ins
 from worker.preparation.localization.auto import crispness, judge
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
-from worker.preparation.localization.common import make_input
+from worker.preparation.localization.common import ins_at_frames, make_input
 from worker.preparation.localization.odometry import odometry_run
 from worker.preparation.registration import RegisteredCloud, dense_points, register_clouds
 from worker.preparation.scene_elements import find_scene_elements, reference_centreline
@@ -227,7 +227,8 @@ def localization_setup(
         if use_odo:
             # Anchored on every INS record, not the first: the rails found on this cloud
             # carry its heading into the rail-based strategies (localization/anchor.py).
-            pre_track, anchor_info = anchored_to_ins(odo_track, inp.ins_track)
+            v_world = ins_at_frames(inp, Health()).v_world
+            pre_track, anchor_info = anchored_to_ins(odo_track, inp.ins_track, v_world)
             odo_health.metrics.update({f"anchor_{k}": v for k, v in anchor_info.items()})
         else:
             pre_track = _at_frames(inp.ins_track, inp)
