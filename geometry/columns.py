@@ -31,3 +31,10 @@ def finite_rows(a: NDArray[Any]) -> NDArray[np.bool_]:
     for i in range(1, a.shape[1]):
         out &= np.isfinite(a[:, i])
     return out
+
+
+def zero_centre(a: NDArray[np.float64], axis: int | None = None) -> NDArray[np.float64]:
+    """Zeros shaped like ``np.median(a, axis=axis)``: the ``center`` to give
+    ``scipy.stats.median_abs_deviation`` for residuals that should be zero (their spread
+    about zero, not about their median)."""
+    return np.zeros_like(np.median(a, axis=axis))

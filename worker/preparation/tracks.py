@@ -44,8 +44,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
+from scipy.stats import median_abs_deviation
 
-from geometry.columns import finite_rows
+from geometry.columns import finite_rows, zero_centre
 from geometry.poses import PoseTrack
 from worker.preparation.centreline import RAIL_HEAD_SPACING, Centreline
 from worker.preparation.rails_geometric import (
@@ -56,7 +57,6 @@ from worker.preparation.rails_geometric import (
 )
 from worker.preparation.rails_image import image_rail_candidates
 from worker.preparation.registration import RegisteredCloud
-from worker.robust_stats import mad_sigma
 
 if TYPE_CHECKING:
     from worker.osdar.sequence import Sequence
@@ -156,7 +156,11 @@ def _robust_smooth(x: F64, y: F64, w: F64, xq: F64, sigma: float, floor: float) 
     if len(x) >= 4:
         fit = np.interp(x, xq, yq) if len(xq) > 1 else np.full(len(x), yq[0])
         r = y - fit
-        mad = float(mad_sigma(r[w > 0], centred=False)) if np.any(w > 0) else floor
+        mad = (
+            float(median_abs_deviation(r[w > 0], center=zero_centre, scale="normal"))
+            if np.any(w > 0)
+            else floor
+        )
         w2 = np.where(np.abs(r) <= 3.0 * max(mad, floor), w, 0.0)
         if w2.sum() > 0:
             yq, s0 = _local_linear(x, y, w2, xq, sigma)

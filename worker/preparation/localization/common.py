@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
+from scipy.stats import median_abs_deviation
 
 from geometry.pose_uncertainty import PoseInformation
 from geometry.poses import PoseTrack
@@ -29,7 +30,6 @@ from worker.osdar.ins_poses import ins_to_base_poses, world_frame_from_ins
 from worker.osdar.sequence import Sequence
 from worker.preparation.centreline import Centreline
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
-from worker.robust_stats import mad_sigma
 
 F64 = NDArray[np.float64]
 log = logging.getLogger("worker.preparation.localization")
@@ -188,7 +188,7 @@ def detect_jumps(p: F64, v: F64, times: F64, covered: NDArray[np.bool_]) -> tupl
     predicted = 0.5 * (v[:-1] + v[1:]) * dt[:, None]
     excess = np.diff(p, axis=0) - predicted
     mag = np.linalg.norm(excess, axis=1)
-    noise = float(mad_sigma(mag)) + float(np.median(mag))
+    noise = float(median_abs_deviation(mag, scale="normal")) + float(np.median(mag))
     thresh = max(JUMP_THRESHOLD_M, 8.0 * noise)
     both = covered[:-1] & covered[1:]
     ks = [int(k) + 1 for k in np.flatnonzero((mag > thresh) & both)]

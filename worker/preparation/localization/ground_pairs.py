@@ -27,8 +27,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
+from scipy.stats import median_abs_deviation
 
-from worker.robust_stats import mad_sigma
+from geometry.columns import zero_centre
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -176,7 +177,9 @@ def ground_pair(
         r = r0 + A @ x
         r_ok = r[ok]
         med = float(np.median(r_ok))
-        spread = max(mad_sigma(r_ok - med, centred=False), TRIM_FLOOR_M)
+        spread = max(
+            median_abs_deviation(r_ok - med, center=zero_centre, scale="normal"), TRIM_FLOOR_M
+        )
         keep = np.abs(r - med) < TRIM_SIGMAS * spread
         if int(np.sum(keep)) < MIN_MATCHED:
             return None

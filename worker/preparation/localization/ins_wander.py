@@ -17,8 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
+from scipy.stats import median_abs_deviation
 
-from worker.robust_stats import mad_sigma
+from geometry.columns import zero_centre
 
 F64 = NDArray[np.float64]
 
@@ -48,7 +49,7 @@ def robust_rms(x: F64) -> F64:
     ``OUTLIER_SIGMAS`` robust sigmas (a few GNSS jumps do not count; a steady drift, whose
     values are all alike, is measured as it is)."""
     a = np.abs(np.asarray(x, dtype=np.float64))
-    limit = OUTLIER_SIGMAS * mad_sigma(a, axis=0, centred=False)
+    limit = OUTLIER_SIGMAS * median_abs_deviation(a, axis=0, center=zero_centre, scale="normal")
     keep = a <= limit[None, :]
     return np.sqrt(np.sum(np.where(keep, a * a, 0.0), axis=0) / np.maximum(keep.sum(axis=0), 1))
 

@@ -15,11 +15,11 @@ import time
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import median_abs_deviation
 
 from worker.preparation.centreline import Centreline
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
 from worker.preparation.localization.common import ins_at_frames, make_result
-from worker.robust_stats import mad_sigma
 
 F64 = NDArray[np.float64]
 
@@ -75,7 +75,7 @@ def orientation_noise(ego: Centreline, s_lo: float, s_hi: float) -> F64:
     out = np.zeros(3)
     for i, a in enumerate((ego.roll(s), pitch, heading)):
         d2 = a[:-2] - 2.0 * a[1:-1] + a[2:]
-        out[i] = mad_sigma(d2) / np.sqrt(6.0)
+        out[i] = median_abs_deviation(d2, scale="normal") / np.sqrt(6.0)
     return out
 
 
