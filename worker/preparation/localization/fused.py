@@ -607,6 +607,11 @@ ZUPT_SIGMA_R = 0.001 * DEG
 #: Floor of the translation sigma of a standstill step (m); above it, what the INS speed
 #: allows over the step.
 ZUPT_SIGMA_T_MIN = 0.0005
+#: A sequence that stands throughout (INS travelled distance): its steps' sigmas (m, rad),
+#: small enough that 100 chained steps stay below a hundredth of a pixel at 50 m (the
+#: odometry of a standing train does not drift either: it re-registers one map).
+STANDSTILL_SIGMA_T = 2e-5
+STANDSTILL_SIGMA_R = 1e-5 * DEG
 #: Half-width (frames) of the median filter on the INS speed for the standstill test.
 ZUPT_WINDOW = 5
 
@@ -630,12 +635,16 @@ def zero_velocity_steps(
     if not np.any(still):
         return still
     dt = np.diff(times)[still]
-    moving_bound = np.zeros_like(dt) if ins.standstill else step_speed[still] * dt
-    sigma_t = np.maximum(moving_bound, ZUPT_SIGMA_T_MIN)
+    if ins.standstill:  # the train stands throughout: one pose, up to numerical noise
+        sigma_t = np.full(len(dt), STANDSTILL_SIGMA_T)
+        sigma_r = STANDSTILL_SIGMA_R
+    else:
+        sigma_t = np.maximum(step_speed[still] * dt, ZUPT_SIGMA_T_MIN)
+        sigma_r = ZUPT_SIGMA_R
     d_t[still] = 0.0
     d_R[still] = np.eye(3)
     w_t[still] = 1.0 / sigma_t[:, None]
-    w_r[still] = 1.0 / ZUPT_SIGMA_R
+    w_r[still] = 1.0 / sigma_r
     health.metrics["fused_zero_velocity_steps"] = float(np.sum(still))
     return still
 
