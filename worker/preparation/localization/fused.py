@@ -1029,10 +1029,11 @@ def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
     S = sparsity(pb)
     groups = _column_groups(pb.n, pb.n_knots, _frame_period(pb))
     c = pb.sig.huber
-    J, step = None, np.inf
-    for _ in range(max_iter):
+    J, step, fresh = None, np.inf, False
+    for it in range(max_iter + 1):
         r = residuals(x, pb)
-        if J is None or step >= REUSE_JACOBIAN_STEP:
+        fresh = J is None or step >= REUSE_JACOBIAN_STEP or it == max_iter
+        if fresh:
             J = jacobian(x, r, pb, S, groups)
         a = np.abs(r)
         w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
@@ -1043,7 +1044,12 @@ def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
         x = x + dx
         step = float(np.max(np.abs(dx)))
         if step < STEP_TOL:
-            break
+            if fresh:
+                break
+            # converged with a reused Jacobian: its fixed point depends on where it was
+            # frozen (micrometres along the least observed direction); one step with the
+            # Jacobian of this point lands on the problem's own
+            step = np.inf
     return x
 
 
