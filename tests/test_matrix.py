@@ -84,3 +84,21 @@ def test_summary_reports_every_goal_and_a_heatmap(small_run: dict, tmp_path: Pat
     json.dumps(small_run)  # JSON-able
     png = plot_heatmap(small_run, tmp_path / "m.png")
     assert png.stat().st_size > 1000
+
+
+def test_cli_quick_matrix_writes_json_markdown_and_heatmap(tmp_path: Path, capsys) -> None:
+    """``osdar-ar bench --matrix --quick``: the documented CI subset, end to end."""
+    from worker.cli import main
+
+    out_json, out_md = tmp_path / "m.json", tmp_path / "m.md"
+    rc = main(
+        ["bench", "--matrix", "--quick", "--json", str(out_json), "--markdown", str(out_md),
+         "--workdir", str(tmp_path / "w")]
+    )  # fmt: skip
+    assert rc == 0
+    result = json.loads(out_json.read_text())
+    assert len(result["cells"]) == len(design(True)) and not result["failed_cells"]
+    text = out_md.read_text()
+    assert "| fused |" in text and ("MISS" in text or "| ok |" in text)
+    assert (tmp_path / "m_heatmap.png").stat().st_size > 1000
+    assert "goals" in capsys.readouterr().out

@@ -937,6 +937,15 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quick", action="store_true", help="reduced run (CI): 20 frames, 2 strategies")
     p.add_argument("--json", type=Path, default=None, help="write the results as JSON")
     p.add_argument("--hard", action="store_true", help="the 12 hard cases with their bounds")
+    p.add_argument(
+        "--matrix", action="store_true",
+        help="the robustness matrix (scenes x lengths x densities x INS profiles x seeds, "
+        "slow and standing trains; --quick: the 8 CI cells): per-strategy distributions, "
+        "goals (ok / MISS), heatmap PNG",
+    )  # fmt: skip
+    p.add_argument(
+        "--markdown", type=Path, default=None, help="with --matrix: write the report as markdown"
+    )
     p.add_argument("--no-floor", action="store_true", help="skip the I/O floor measurement")
     p.add_argument(
         "--ins-profile", default="osdar23",
@@ -955,6 +964,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
     from worker.bench.run import FULL, QUICK, run_bench
 
+    if args.matrix:
+        return _bench_matrix(args)
     settings = replace(QUICK if args.quick else FULL, ins_profile=args.ins_profile)
     result = run_bench(
         quick=args.quick, workdir=args.workdir, json_path=args.json, hard=args.hard,
@@ -963,6 +974,30 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.hard:
         return 0 if all(c["ok"] for c in result["hard_cases"]) else 1
     return 0
+
+
+def _bench_matrix(args: argparse.Namespace) -> int:
+    from worker.bench.matrix import design, format_summary, run_and_report
+
+    bar = _progress_bar(len(design(args.quick)), "robustness matrix")
+    bar.unit = "cell"
+
+    def progress(done: int, total: int, name: str) -> None:
+        bar.set_postfix_str(name)
+        bar.update(done - bar.n)
+
+    try:
+        result = run_and_report(
+            args.workdir / "matrix", quick=args.quick, json_path=args.json,
+            markdown_path=args.markdown, progress=progress,
+        )  # fmt: skip
+        bar.update(bar.total - bar.n)
+    finally:
+        bar.close()
+    print(format_summary(result))  # noqa: T201 - CLI output
+    for kind, path in result["outputs"].items():
+        print(f"{kind}: {path}")  # noqa: T201 - CLI output
+    return 1 if result["failed_cells"] else 0
 
 
 # ---------------------------------------------------------------------------- main

@@ -719,3 +719,87 @@ def format_summary(result: dict[str, Any]) -> str:
     for f in result["failed_cells"]:
         lines.append(f"  FAILED {f['name']}: {f['error']}")
     return "\n".join(lines)
+
+
+def _fmt(v: float | None, nd: int = 3) -> str:
+    return "-" if v is None else f"{v:.{nd}g}"
+
+
+def to_markdown(result: dict[str, Any], stamp: str = "") -> str:
+    """The matrix's figures as markdown: distributions per strategy, goals (ok / MISS),
+    health-flag confusion, worst cells (docs/robustness_matrix.md is this output)."""
+    summ = result.get("summary") or {}
+    dist = summ.get("distributions", {})
+    lines = [f"{len(result['cells'])} cells, {len(result['failed_cells'])} failed, "
+             f"{result['seconds'] / 60:.1f} min. {stamp}".rstrip(), ""]  # fmt: skip
+    cols = [
+        ("L1_t_m", "lag-1 t (m)"), ("L10_t_m", "lag-10 t (m)"), ("L10_r_deg", "lag-10 r (deg)"),
+        ("L30_r_deg", "lag-30 r (deg)"), ("rgb_highres_center_rpe_mean_px", "C2 paper RPE (px)"),
+        ("rgb_highres_center_jitter_mean_px", "C2 paper jitter (px)"),
+        ("rgb_highres_center_anchor_error_mean_px", "C2 anchor error (px)"),
+        ("rgb_highres_center_anchor_jitter_p90_px", "C2 anchor jitter p90 (px)"),
+    ]  # fmt: skip
+    lines.append("Median / p90 / worst over the cells:")
+    lines.append("")
+    lines.append("| strategy | " + " | ".join(c[1] for c in cols) + " |")
+    lines.append("|---|" + "---|" * len(cols))
+    for s, d in dist.items():
+        cells = []
+        for key, _ in cols:
+            v = d.get(key) or {}
+            cells.append(" / ".join(_fmt(v.get(x)) for x in ("median", "p90", "worst")))
+        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    lines += ["", "Goals (set before measuring; a MISS stays until the code meets it):", ""]
+    lines.append("| goal | bound | measured | |")
+    lines.append("|---|---|---|---|")
+    for name, g in (summ.get("goals") or {}).items():
+        bound = g.get("bound", g.get("band", ""))
+        measured = g.get("measured", g.get("measured_worst", ""))
+        if isinstance(measured, dict):
+            measured = f"median {_fmt(measured.get('median'))}, worst {_fmt(measured.get('worst'))}"
+        elif isinstance(measured, float):
+            measured = _fmt(measured)
+        flag = "ok" if g.get("ok") else "**MISS**"
+        lines.append(f"| {name} | {bound} | {measured} | {flag} |")
+    lines += ["", "Health flags against the truth (degraded and more than 2x worse than the "
+              "best strategy at lag 10):", "",
+              "| strategy | flagged & bad | missed | false alarms | quiet & fine |",
+              "|---|---|---|---|---|"]  # fmt: skip
+    for s, h in (summ.get("health_flags") or {}).items():
+        lines.append(f"| {s} | {h['flagged_and_bad']} | {h['missed']} | "
+                     f"{h['false_alarms']} | {h['quiet_and_fine']} |")  # fmt: skip
+    lines += ["", "Worst cells by lag-10 rotation (deg):", ""]
+    for s, worst in (summ.get("worst_cells_lag10_rotation_deg") or {}).items():
+        lines.append(f"- {s}: " + ", ".join(f"{n} {_fmt(v)}" for n, v in worst[:3]))
+    missing = (summ.get("goals") or {}).get("fused_within_10pct_of_inputs", {})
+    if missing.get("cells_missing"):
+        lines += ["", "Cells where fused is more than 10 % worse than the better of ins and "
+                  "odometry at some lag: " + ", ".join(missing["cells_missing"]) + "."]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def run_and_report(
+    workdir: str | Path,
+    *,
+    quick: bool = False,
+    json_path: str | Path | None = None,
+    markdown_path: str | Path | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> dict[str, Any]:
+    """Run the matrix under ``workdir`` and write its JSON, heatmap (beside the JSON, else
+    in ``workdir``) and markdown report; returns the result with ``outputs``."""
+    result = run_matrix(Path(workdir) / "sequences", quick=quick, progress=progress)
+    outputs: dict[str, str] = {}
+    png_base = Path(json_path).with_suffix("") if json_path else Path(workdir) / "matrix"
+    if result["cells"]:
+        outputs["heatmap"] = str(plot_heatmap(result, f"{png_base}_heatmap.png"))
+    if json_path is not None:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        Path(json_path).write_text(json.dumps(result, indent=1))
+        outputs["json"] = str(json_path)
+    if markdown_path is not None:
+        Path(markdown_path).parent.mkdir(parents=True, exist_ok=True)
+        Path(markdown_path).write_text(to_markdown(result))
+        outputs["markdown"] = str(markdown_path)
+    result["outputs"] = outputs
+    return result
