@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -103,3 +103,17 @@ def tiny_sequence(tmp_path: Path, _real_raw: dict) -> Callable[..., Path]:
 
 
 pytest_plugins = ["tests.conftest_service"]
+
+
+@pytest.fixture
+def fresh_data_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
+    """An empty OSDAR_AR_DATA_DIR and no DATABASE_URL: the embedded SQLite default on a
+    fresh database (settings re-read before and after)."""
+    from osdar_platform.settings import get_settings
+
+    for name in ("DATABASE_URL", "OSDAR_AR_DATABASE_URL"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("OSDAR_AR_DATA_DIR", str(tmp_path))
+    get_settings.cache_clear()
+    yield tmp_path
+    get_settings.cache_clear()

@@ -5,7 +5,6 @@ say which RPE is the paper's and which is the true error."""
 from __future__ import annotations
 
 import uuid
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -17,18 +16,8 @@ from worker.cli import main, rpe_tables
 PG_ADMIN = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 
 
-@pytest.fixture
-def fresh_sqlite(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
-    for name in ("DATABASE_URL", "OSDAR_AR_DATABASE_URL"):
-        monkeypatch.delenv(name, raising=False)
-    monkeypatch.setenv("OSDAR_AR_DATA_DIR", str(tmp_path))
-    get_settings.cache_clear()
-    yield tmp_path
-    get_settings.cache_clear()
-
-
-def test_keys_create_on_a_fresh_sqlite_database(fresh_sqlite: Path, capsys) -> None:
-    assert not (fresh_sqlite / "osdar-ar.db").exists()
+def test_keys_create_on_a_fresh_data_dir_database(fresh_data_dir: Path, capsys) -> None:
+    assert not (fresh_data_dir / "osdar-ar.db").exists()
     assert main(["keys", "create", "alice"]) == 0
     secret = capsys.readouterr().out.strip()
     assert len(secret) >= 20 and "Traceback" not in secret

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -12,23 +11,15 @@ from osdar_platform.settings import get_settings
 from worker.cli import main
 
 
-@pytest.fixture
-def env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
-    for name in ("DATABASE_URL", "OSDAR_AR_DATABASE_URL"):
-        monkeypatch.delenv(name, raising=False)
-    monkeypatch.setenv("OSDAR_AR_DATA_DIR", str(tmp_path))
-    get_settings.cache_clear()
-    yield tmp_path
-    get_settings.cache_clear()
-
-
-def test_migrate_then_create_list_revoke_a_key(env: Path, capsys: pytest.CaptureFixture) -> None:
+def test_migrate_then_create_list_revoke_a_key(
+    fresh_data_dir: Path, capsys: pytest.CaptureFixture
+) -> None:
     from osdar_platform.db import session_scope
     from osdar_platform.keys import find_api_key
     from osdar_platform.models import ApiKey
 
     assert main(["migrate"]) == 0
-    assert (env / "osdar-ar.db").is_file()
+    assert (fresh_data_dir / "osdar-ar.db").is_file()
     assert main(["migrate"]) == 0  # idempotent
     capsys.readouterr()
     assert main(["keys", "create", "ci robot"]) == 0

@@ -26,7 +26,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -406,10 +406,6 @@ def _dist(values: Iterable[float | None]) -> dict[str, float | None]:
     }
 
 
-def _chosen(cell: dict[str, Any]) -> str:
-    return cell["strategies"]["auto"]["health"].get("chosen") or "auto"
-
-
 def summarize(cells: list[dict[str, Any]]) -> dict[str, Any]:
     """Distributions per strategy, worst cells, goal checks, health-flag confusion."""
     dist: dict[str, Any] = {}
@@ -597,14 +593,6 @@ def health_confusion(cells: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------- the run
-@dataclass
-class MatrixRun:
-    """Where the matrix writes and what it keeps."""
-
-    root: Path
-    quick: bool = False
-    keep: bool = False
-    cells: list[Cell] = field(default_factory=list)
 
 
 def run_matrix(
