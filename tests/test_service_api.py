@@ -589,7 +589,7 @@ def test_the_service_imports_no_geometry() -> None:
     )
     mods = set(json.loads(out.stdout))
     heavy = {"numpy", "scipy", "open3d", "cv2", "moderngl", "trimesh", "renderer", "celery"}
-    heavy |= {"worker.osdar", "worker.preparation.prepare", "worker.synth"}
+    heavy |= {"geometry", "worker.osdar", "worker.preparation.prepare", "worker.synth"}
     assert not (mods & heavy), sorted(mods & heavy)
     assert "fastapi" in mods and "osdar_platform.models" in mods
 
