@@ -280,7 +280,7 @@ def test_orientation_noise_sees_knot_noise_not_a_smooth_curve() -> None:
 
 def test_fused_rail_sigmas_follow_the_centrelines_noise(results: dict, seqs: dict) -> None:
     """True centreline: the floors (roll 0.4 deg: a cant from two rail heights; pitch 0.05
-    deg; heading 0.05 deg for a standing train, 5 deg once the frames cover 20 m of track,
+    deg; heading 0.05 deg for a standing train, 5 deg once the frames cover 5 m of track,
     whose lateral positions then hold the heading); knots with 1 cm of noise: tenths of a
     degree on pitch, so the noisy tangent no longer drives the rotations."""
     floor = results["fire_site"]["fused"].health.metrics
