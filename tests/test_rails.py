@@ -293,3 +293,20 @@ def test_image_backend(switch: Scene, tmp_path: Path) -> None:
         switch.cloud, switch.poses, "image", seq=switch.seq, options={"model": cfg, "max_frames": 5}
     )
     assert res2.metrics["image_frames"] <= 5
+
+
+def test_rail_frames_beyond_the_start_measure_across_the_extension() -> None:
+    """A train on the first metres of its track, which the lidars never saw (the fitted
+    centreline starts 8 m ahead): its poses continue the line, 0.3 m to the side is 0.3 m
+    (not 8 m: no 'wrong track?' about an unseen stretch)."""
+    from worker.preparation.localization.rails import rail_frames
+
+    x = np.arange(8.0, 200.0, 2.0)
+    ego = Centreline(np.column_stack([x, np.zeros_like(x), np.zeros_like(x)]), ego=True)
+    p = np.array([[0.0, 0.3, 0.0], [4.0, -0.2, 0.0], [50.0, 0.1, 0.0]])
+    T, s, dist = rail_frames(ego, p)
+    np.testing.assert_allclose(dist, [0.3, 0.2, 0.1], atol=1e-6)
+    np.testing.assert_allclose(s, [-8.0, -4.0, 42.0], atol=1e-6)
+    np.testing.assert_allclose(
+        T[:, :3, 3], [[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [50.0, 0.0, 0.0]], atol=1e-6
+    )

@@ -155,3 +155,20 @@ def test_default_ins_profile_gives_paper_like_raw_ins_errors(small_seq):
     m = evaluate_raw_ins(small_seq)
     rpe = m["landmark_reprojection_px"]["rgb_center"]["rpe_mean"]
     assert 10.0 < rpe < 200.0
+
+
+def test_blind_lidars_never_see_the_first_metres_ahead(tmp_path):
+    """``lidar_blind_ahead_m``: no return nearer than that ahead of the base origin, and
+    the rest of the cloud is the same as without it."""
+    cfg = dict(scene="straight_sparse", frames=2, scale=0.05, lidar_density=0.05, seed=7)
+    seen = Sequence.open(generate(tmp_path / "seen", SynthConfig(**cfg)).folder)
+    blind = Sequence.open(
+        generate(tmp_path / "blind", SynthConfig(**cfg, lidar_blind_ahead_m=7.0)).folder
+    )
+    for f in seen.frame_indices:
+        a, b = seen.pcd(f), blind.pcd(f)
+        near = a.fields["x"] < 7.0
+        assert np.any(near) and not np.any(b.fields["x"] < 7.0)
+        np.testing.assert_array_equal(b.fields["x"], a.fields["x"][~near])
+    with pytest.raises(ValueError, match="lidar_blind_ahead_m"):
+        SynthConfig(lidar_blind_ahead_m=-1.0)

@@ -81,6 +81,10 @@ class SynthConfig:
     #: translation m) standard deviations per axis; None: the INS profile's default
     #: (:data:`MERGE_ERROR_BY_PROFILE`: "osdar23" has it, as real merged clouds do).
     lidar_merge_error: tuple[float, float] | None = None
+    #: Returns less than this far ahead of the base origin (base x, m) are not reported:
+    #: lidars on a train's roof that do not see the track right in front of it (the first
+    #: metres of the sequence's track are then never seen). 0: they see everything.
+    lidar_blind_ahead_m: float = 0.0
     ins_overrides: dict[str, Any] = field(default_factory=dict)
     speed_mps: float | None = None  # None: the scene's own speed
     stationary: bool = False
@@ -98,6 +102,8 @@ class SynthConfig:
             raise ValueError("frames must be >= 1")
         if not 0.01 <= self.scale <= 1.0:
             raise ValueError("scale must be in [0.01, 1]")
+        if self.lidar_blind_ahead_m < 0:
+            raise ValueError(f"lidar_blind_ahead_m must be >= 0, got {self.lidar_blind_ahead_m}")
         if not 0.0 < self.lidar_density <= 1.0:
             raise ValueError("lidar_density must be in (0, 1]")
         if self.pcd_data not in ("ascii", "binary", "binary_compressed"):
@@ -409,6 +415,9 @@ def _write_frame(
         stages["landmarks"] += time.perf_counter() - tic
     tic = time.perf_counter()
     scan = rig.lidar.scan(ft.seconds("lidar"), rig.traj)
+    if cfg.lidar_blind_ahead_m > 0:
+        keep = scan["x"] >= cfg.lidar_blind_ahead_m
+        scan = {k: v[keep] for k, v in scan.items()}
     stages["lidar"] += time.perf_counter() - tic
     tic = time.perf_counter()
     cloud = _cloud_from_scan(scan, cfg.pcd_data)

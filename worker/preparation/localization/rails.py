@@ -33,12 +33,16 @@ def rail_frames(ego: Centreline, p_world: F64) -> tuple[F64, F64, F64]:
     Returns
     -------
     T_world_base (n, 4, 4) centreline frames at the projections (extended along the end
-    tangents beyond the ends), arc lengths s (n,) (unclamped), horizontal distances (n,).
+    tangents beyond the ends), arc lengths s (n,) (unclamped), horizontal distances (n,)
+    to the centreline or, beyond its ends, to its extension.
     """
     proj = ego.project(p_world)
     s = np.asarray(proj.s, dtype=np.float64).copy()
+    dist = np.asarray(proj.distance, dtype=np.float64).copy()
     T = ego.frame_at(s)
-    # Beyond an end: move along the end tangent by the along-tangent excess.
+    # Beyond an end: move along the end tangent by the along-tangent excess; the distance
+    # is then across the extended line (a train on the first, never seen metres of its
+    # track is on the line ahead, not metres from its track).
     for end in (0.0, ego.length):
         at_end = np.abs(s - end) < 1e-9
         if not np.any(at_end):
@@ -48,7 +52,8 @@ def rail_frames(ego: Centreline, p_world: F64) -> tuple[F64, F64, F64]:
         excess = np.minimum(excess, 0.0) if end == 0.0 else np.maximum(excess, 0.0)
         T[at_end, :3, 3] += excess[:, None] * tangent
         s[at_end] += excess
-    return T, s, np.asarray(proj.distance, dtype=np.float64)
+        dist[at_end] = np.linalg.norm((p_world[at_end] - T[at_end, :3, 3])[:, :2], axis=1)
+    return T, s, dist
 
 
 #: Spacing (m) at which :func:`orientation_noise` samples the centreline: twice the
