@@ -99,3 +99,26 @@ def test_branch_tangent_continuity(curve: AlignedTrack) -> None:
     assert np.linalg.norm((br.point(s_end + h) - br.point(s_end - h))[0, :2]) == pytest.approx(
         2 * h, rel=1e-6
     )
+
+
+def test_a_body_on_two_bogies_stands_outside_the_curve() -> None:
+    """The generator's train on two bogies (overhang a = 3 m, spacing b = 19 m) in a flat
+    R = 600 m arc: its base lies a (a + b) / 2R = 5.5 cm outside the centreline, its
+    heading is the chord's, (a + b / 2) / R = 1.19 deg short of the tangent's at the base,
+    its up axis is the rail plane's; on a straight it is on the centreline."""
+    from scipy.spatial.transform import Rotation
+
+    from worker.synth.generator import Trajectory
+
+    al = Alignment().straight(100.0).arc(200.0, 600.0)
+    track = AlignedTrack(al, (0.0, 0.0, 0.0), 0.0, Profile())
+    traj = Trajectory(track, 0.0, 10.0, 0.0, 0.0, seed=0, body_motion=False, bogies=(3.0, 19.0))
+    s = np.array([60.0, 200.0])  # straight; well inside the arc
+    T = traj(s / 10.0)
+    on = track.frame_at(s)
+    np.testing.assert_allclose(T[0], on[0], atol=1e-9)
+    lateral = (T[1, :3, 3] - on[1, :3, 3]) @ on[1, :3, 1]  # left +; the arc turns left
+    assert lateral == pytest.approx(-3.0 * 22.0 / 1200.0, abs=2e-4)
+    yaw = Rotation.from_matrix(on[1, :3, :3].T @ T[1, :3, :3]).as_rotvec()
+    assert np.degrees(yaw[2]) == pytest.approx(-np.degrees(12.5 / 600.0), abs=2e-3)
+    np.testing.assert_allclose(T[1, :3, 2], on[1, :3, 2], atol=1e-9)

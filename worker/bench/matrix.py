@@ -70,6 +70,11 @@ STRATEGIES = ("ins", "odometry", "rails", "fused", "auto")
 CAMERAS = ("rgb_center", "rgb_highres_center")
 #: Speed of the slow variant (m/s): below the issue's 2 m/s.
 SLOW_SPEED_MPS = 1.5
+#: The bogie cells' train (overhang, spacing) m: a cab car's front 3 m ahead of its front
+#: bogie, bogie centres 19 m apart (a typical coach).
+BOGIES = (3.0, 19.0)
+#: The blind cells' unseen stretch ahead of the lidars (m).
+BLIND_AHEAD_M = 7.0
 #: Image scale of the matrix's sequences: the cameras' pixels are not read (clicks and the
 #: anchor use the full-resolution models), only rendered.
 IMAGE_SCALE = 0.05
@@ -112,13 +117,19 @@ class Cell:
     #: per-lidar merge calibration error: None the profile's default (osdar23: on), or
     #: False (off)
     merge_error: bool | None = None
+    #: the train body on two bogies (:data:`BOGIES`): the base off the centreline in curves
+    bogies: bool = False
+    #: lidars blind to the first :data:`BLIND_AHEAD_M` ahead: the first metres of track unseen
+    blind: bool = False
 
     @property
     def name(self) -> str:
         name = f"{self.scene}-f{self.frames}-d{self.density:g}-{self.profile}-s{self.seed}"
         if self.motion != "moving":
             name += f"-{self.motion}"
-        return name + ("-nomerge" if self.merge_error is False else "")
+        name += "-nomerge" if self.merge_error is False else ""
+        name += "-bogies" if self.bogies else ""
+        return name + ("-blind" if self.blind else "")
 
     def synth_config(self) -> SynthConfig:
         return SynthConfig(
@@ -131,6 +142,8 @@ class Cell:
             speed_mps=SLOW_SPEED_MPS if self.motion == "slow" else None,
             stationary=self.motion == "stationary",
             lidar_merge_error=(0.0, 0.0) if self.merge_error is False else None,
+            bogies=BOGIES if self.bogies else None,
+            lidar_blind_ahead_m=BLIND_AHEAD_M if self.blind else 0.0,
         )
 
 
@@ -140,8 +153,9 @@ def design(quick: bool = False) -> list[Cell]:
     Full: 7 scenes x 5 lengths, each (scene, length) pair once, with (density, profile,
     seed) cycling through their 12 combinations so every level of every factor appears
     with every scene and every length; plus a slow and a standing variant of every scene
-    and two scenes' 60-frame osdar23 cells with and without the per-lidar merge error
-    (52 cells once a duplicate is dropped; about 25 minutes here).
+    and two scenes' 60-frame osdar23 cells with and without the per-lidar merge error,
+    plus a train on two bogies and lidars blind to the first metres ahead (56 cells once a
+    duplicate is dropped; about 12 minutes here).
     Quick (CI): 8 cells covering every scene, every length but 100, both densities, all
     three profiles, both seeds and both variants.
     """
@@ -172,6 +186,11 @@ def design(quick: bool = False) -> list[Cell]:
     for scene in ("fire_site", "klein_flottbek"):
         cells.append(Cell(scene, 60, 1.0, "osdar23", 0, merge_error=False))
         cells.append(Cell(scene, 60, 1.0, "osdar23", 0))
+    # a train on two bogies in curves; the first metres of track never seen
+    cells.append(Cell("tight_curve", 60, 1.0, "osdar23", 0, bogies=True))
+    cells.append(Cell("klein_flottbek", 60, 0.3, "good", 1, bogies=True))
+    cells.append(Cell("fire_site", 60, 1.0, "osdar23", 1, blind=True))
+    cells.append(Cell("station", 35, 0.3, "hard", 0, blind=True, bogies=True))
     return list({c.name: c for c in cells}.values())  # one cell per name, in order
 
 

@@ -85,6 +85,10 @@ class SynthConfig:
     #: lidars on a train's roof that do not see the track right in front of it (the first
     #: metres of the sequence's track are then never seen). 0: they see everything.
     lidar_blind_ahead_m: float = 0.0
+    #: The train body on two bogies: (overhang m, the base origin ahead of the front
+    #: bogie's centre; spacing m between the bogie centres), e.g. (3.0, 19.0); None: the
+    #: base frame runs on the centreline with the track's tangent.
+    bogies: tuple[float, float] | None = None
     ins_overrides: dict[str, Any] = field(default_factory=dict)
     speed_mps: float | None = None  # None: the scene's own speed
     stationary: bool = False
@@ -102,6 +106,12 @@ class SynthConfig:
             raise ValueError("frames must be >= 1")
         if not 0.01 <= self.scale <= 1.0:
             raise ValueError("scale must be in [0.01, 1]")
+        if self.bogies is not None and not (
+            self.bogies[0] >= 0 and 0 < self.bogies[1] and sum(self.bogies) < 25.0
+        ):
+            raise ValueError(
+                f"bogies must be (overhang >= 0, spacing > 0) m within 25 m, got {self.bogies}"
+            )
         if self.lidar_blind_ahead_m < 0:
             raise ValueError(f"lidar_blind_ahead_m must be >= 0, got {self.lidar_blind_ahead_m}")
         if not 0.0 < self.lidar_density <= 1.0:
@@ -161,9 +171,11 @@ class Trajectory:
         s0: float,
         seed: int,
         body_motion: bool = True,
+        bogies: tuple[float, float] | None = None,
     ) -> None:
         self.track = track
         self.t0, self.speed, self.accel, self.s0 = t0, speed, accel, s0
+        self.bogies = bogies
         rng = np.random.default_rng(seed + 101)
         self.phase = rng.uniform(0, 2 * np.pi, 5)
         self.body = body_motion and speed > 0.0
@@ -175,7 +187,8 @@ class Trajectory:
     def __call__(self, t: F64) -> F64:
         """(m,) UNIX seconds -> (m, 4, 4) T_S_base."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        T = self.track.frame_at(self.arclength(t))
+        s = self.arclength(t)
+        T = self.track.frame_at(s) if self.bogies is None else self._on_bogies(s)
         if not self.body:
             return T
         dt = t - self.t0
@@ -192,6 +205,26 @@ class Trajectory:
         T_body[:, 1, 3] = sway
         T_body[:, 2, 3] = bounce
         return T @ T_body
+
+    def _on_bogies(self, s: F64) -> F64:
+        """(m, 4, 4) T_S_base of a body whose two bogie centres run on the centreline at
+        ``s - overhang`` and ``s - overhang - spacing``: the base is ``overhang`` ahead of
+        the front bogie on the body's axis, so in a curve it lies outside the centreline
+        (overhang (overhang + spacing) / 2R) and the body's heading is the chord's, not
+        the tangent's at the base. Up: the mean of the two bogies' rail-plane normals
+        (their cant), square to the axis."""
+        overhang, spacing = self.bogies  # type: ignore[misc]
+        front = self.track.frame_at(s - overhang)
+        rear = self.track.frame_at(s - overhang - spacing)
+        x = front[:, :3, 3] - rear[:, :3, 3]
+        x /= np.linalg.norm(x, axis=1, keepdims=True)
+        z = front[:, :3, 2] + rear[:, :3, 2]
+        z -= np.sum(z * x, axis=1, keepdims=True) * x
+        z /= np.linalg.norm(z, axis=1, keepdims=True)
+        T = np.tile(np.eye(4), (len(s), 1, 1))
+        T[:, :3, :3] = np.stack([x, np.cross(z, x), z], axis=2)
+        T[:, :3, 3] = front[:, :3, 3] + overhang * x
+        return T
 
 
 def _load_calibration(cfg: SynthConfig) -> dict[str, Any]:
@@ -461,7 +494,7 @@ def generate(
     tic = time.perf_counter()
     scene, speed, s0, offset = _build_scene(cfg, duration)
     stages["scene"] = time.perf_counter() - tic
-    traj = Trajectory(scene.ego, t0, speed, 0.0, s0, cfg.seed)
+    traj = Trajectory(scene.ego, t0, speed, 0.0, s0, cfg.seed, bogies=cfg.bogies)
     tic = time.perf_counter()
     rig = _make_rig(cfg, scene, traj, offset, cams_full, cams, t0)
     stages["setup"] = time.perf_counter() - tic
