@@ -11,7 +11,8 @@ import pytest
 from sqlalchemy import create_engine, text
 
 from osdar_platform.settings import get_settings
-from worker.cli import main, rpe_tables
+from worker.cli import main
+from worker.evaluation.tables import rpe_tables
 
 PG_ADMIN = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 

@@ -23,11 +23,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("geometry", "osdar_platform", "service", "worker", "renderer")
 
-#: worker/cli.py is being split into the package worker/cli/ (a change in flight); its
-#: imports inside functions are exempt from the "lazy:" rule until that split lands and
-#: gives each one its reason. Remove this exemption then.
-LAZY_RULE_PENDING_SPLIT = ("worker/cli.py", "worker/cli/")
-
 #: What the API may take from ``worker``: the queue and the request-time checks (and the
 #: packages on the way, whose ``__init__`` runs).
 SERVICE_MAY_IMPORT_FROM_WORKER = frozenset(
@@ -342,7 +337,6 @@ def test_imports_inside_functions_state_why() -> None:
     offenders = [
         f"{path.relative_to(ROOT).as_posix()}:{line}"
         for module, path in MODULES.items()
-        if not path.relative_to(ROOT).as_posix().startswith(LAZY_RULE_PENDING_SPLIT)
         for line in _unexplained_function_imports(path, module)
     ]
     assert not offenders, (

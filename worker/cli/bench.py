@@ -1,0 +1,46 @@
+"""``osdar-ar bench``: the paper's table, speed against error, the I/O floor; the hard
+cases (``--hard``) or the robustness matrix (``--matrix``)."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+
+from worker.bench.matrix import design, format_summary, run_and_report
+from worker.bench.run import FULL, QUICK, run_bench
+from worker.cli.progress import progress_bar
+
+
+def _bench_matrix(args: argparse.Namespace) -> int:
+    bar = progress_bar(len(design(args.quick)), "robustness matrix")
+    bar.unit = "cell"
+
+    def progress(done: int, total: int, name: str) -> None:
+        bar.set_postfix_str(name)
+        bar.update(done - bar.n)
+
+    try:
+        result = run_and_report(
+            args.workdir / "matrix", quick=args.quick, json_path=args.json,
+            markdown_path=args.markdown, progress=progress,
+        )  # fmt: skip
+        bar.update(bar.total - bar.n)
+    finally:
+        bar.close()
+    print(format_summary(result))  # noqa: T201 - CLI output
+    for kind, path in result["outputs"].items():
+        print(f"{kind}: {path}")  # noqa: T201 - CLI output
+    return 1 if result["failed_cells"] else 0
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.matrix:
+        return _bench_matrix(args)
+    settings = replace(QUICK if args.quick else FULL, ins_profile=args.ins_profile)
+    result = run_bench(
+        quick=args.quick, workdir=args.workdir, json_path=args.json, hard=args.hard,
+        floor=not args.no_floor, settings=settings,
+    )  # fmt: skip
+    if args.hard:
+        return 0 if all(c["ok"] for c in result["hard_cases"]) else 1
+    return 0
