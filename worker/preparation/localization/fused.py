@@ -69,8 +69,8 @@ from worker.preparation.localization.common import (
 )
 from worker.preparation.localization.ground_pairs import LAGS as GROUND_LAGS
 from worker.preparation.localization.ground_pairs import ground_pairs
-from worker.preparation.localization.hat import hat_variances
-from worker.preparation.localization.ins_wander import ins_wander
+from worker.preparation.localization.hat import hat_variances, relative_difference
+from worker.preparation.localization.ins_wander import ins_wander, robust_rms
 from worker.preparation.localization.odometry import (
     degenerate_frames,
     is_degenerate,
@@ -212,6 +212,9 @@ class Problem:
     n_knots: int  # number of INS bias knots (>= 1)
     bias_sigma: F64  # (6,) prior sigmas of a knot's size (attitude rad, position m)
     bias_step_sigma: F64  # (6,) prior sigmas of its change between knots
+    #: (3, 3) the axes of the attitude bias in the world: forward along the sequence's
+    #: mean heading, left, up (about them roll, pitch and heading wander at their own rates)
+    R_bias: F64 = field(default_factory=lambda: np.eye(3))
     ground: dict | None = None  # ground pairs: k, j (P,), T_k_j (P, 4, 4), w (P, 3)
     #: INS velocity steps: k (S,) earlier frames, d (S,) the step's displacement along
     #: the earlier frame's forward axis from the INS velocity, w (S,) 1/sigma
@@ -460,7 +463,7 @@ def _ins_blocks(x: F64, pb: Problem, R: F64, p: F64) -> F64:
         # of which anything here observes (see the module docstring).
         # INS = truth + slow bias: position p + b(t), attitude Exp(beta(t)) @ R.
         bias = _bias_at_records(x, pb)
-        beta = bias[:, :3]
+        beta = bias[:, :3] @ pb.R_bias.T  # world rotation vectors
         pred = p[k] + R[k] @ lever + bias[:, 3:]
         out.append(((pred - pb.p_ins) / (sig.ins_p * pb.s("ins_p"))).ravel())
         R_meas = Rotation.from_rotvec(pb.w_ins * lat).as_matrix() @ pb.R_ins
@@ -720,6 +723,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     bias_sigma = np.array([sig.att_bias] * 3 + [sig.pos_bias] * 3)
     ground = _ground_constraints(inp, health, sig) if n >= 2 else None
     bias_step = _bias_step_sigmas(inp, ins, p_ins_all, degenerate, health, sig, ground)
+    white = _ins_attitude_white(inp, ins, ground, health, sig)
     if rail is None:
         # Nothing else fixes the absolute attitude: the INS's is taken as is.
         bias_sigma[:3] = 0.005 * DEG
@@ -749,20 +753,32 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         zupt=zupt,
         diff2=difference_weights(np.asarray(inp.times, dtype=np.float64), 2),
         diff3=difference_weights(np.asarray(inp.times, dtype=np.float64), 3),
-        ins_r_share=_ins_attitude_factors(k, sig, bias_step),
+        ins_r_share=_ins_attitude_factors(k, sig, bias_step, white),
+        R_bias=_track_axes(R_ins_all),
     )
 
 
-def _ins_attitude_factors(k: NDArray[np.int64], sig: Sigmas, bias_step: F64 | None) -> F64:
+def _track_axes(R_world_base: F64) -> F64:
+    """(3, 3) world axes of the sequence's mean heading (x forward, y left, z up) for
+    (n, 3, 3) base attitudes."""
+    x = R_world_base[:, :, 0]
+    yaw = math.atan2(float(np.sum(x[:, 1])), float(np.sum(x[:, 0])))
+    return Rotation.from_rotvec([0.0, 0.0, yaw]).as_matrix()
+
+
+def _ins_attitude_factors(
+    k: NDArray[np.int64], sig: Sigmas, bias_step: F64 | None, white: F64 | None = None
+) -> F64:
     """(m, 3) factors on ``sig.ins_r`` per INS record and axis (roll, pitch, heading).
 
-    The record's white noise ``ins_r`` and, with ``ins_r_share``, what the INS's wander
+    The record's white noise (``white`` (3,) rad as measured by :func:`_ins_attitude_white`,
+    else ``ins_r``) and, with ``ins_r_share``, what the INS's wander
     adds between the bias knots: a random walk of
     ``q`` per knot strays from its linear interpolation by q / sqrt(6) RMS (a Brownian
     bridge), which the piecewise-linear bias cannot follow; ``bias_step`` (6,) holds q
     about the world axes (horizontal, horizontal, vertical ~ roll, pitch, heading).
     """
-    white = np.full(3, sig.ins_r)
+    white = np.full(3, sig.ins_r) if white is None else np.asarray(white, dtype=np.float64)
     sigma = white
     if sig.ins_r_share and bias_step is not None:
         sigma = np.sqrt(white**2 + bias_step[:3] ** 2 / 6.0)
@@ -771,6 +787,55 @@ def _ins_attitude_factors(k: NDArray[np.int64], sig: Sigmas, bias_step: F64 | No
 
 #: Fewest ground pairs of the longest lag for :func:`_ins_level_wander`.
 MIN_NOISE_PAIRS = 5
+#: Floor of a measured INS attitude white noise (rad): what a survey-grade INS's attitude
+#: output reaches (its quantisation and filter noise), so that sampling luck on a short
+#: sequence cannot make one source absolute.
+INS_WHITE_FLOOR = 0.002 * DEG
+
+
+def _ins_attitude_white(
+    inp: LocalizationInput, ins: InsFrames, ground: dict | None, health: Health, sig: Sigmas
+) -> F64 | None:
+    """(3,) the INS attitude's white noise per record (rad) about roll, pitch and heading,
+    measured over one frame step, within [INS_WHITE_FLOOR, ``sig.ins_r``]; None when it
+    cannot be measured (the fixed ``sig.ins_r`` then holds).
+
+    Over one frame the INS's wander is negligible, so its relative rotation's error is
+    its white noise twice. Roll and pitch come from the three-cornered hat of the INS, the
+    odometry and the lag-1 ground pairs (each source's own error); the heading, with no
+    third source, from the INS against the odometry, which counts the odometry's own step
+    error as the INS's (an upper bound: conservative). A fixed 0.03 deg made a good INS
+    (0.003 deg noise) count for a hundredth of its worth, and the fused rotation over 30
+    frames followed the odometry's drift (0.034 deg against the INS's own 0.007).
+    """
+    try:
+        T_odo = odometry_track(inp)[0].T
+    except Exception:  # the wander measurement has warned already
+        return None
+    covered = np.asarray(ins.covered, dtype=bool)
+    i = np.flatnonzero(covered[:-1] & covered[1:])
+    if len(i) < MIN_NOISE_PAIRS:
+        return None
+    R_ins, R_odo = ins.T_world_base[:, :3, :3], T_odo[:, :3, :3]
+    rel_ins = np.swapaxes(R_ins[i], 1, 2) @ R_ins[i + 1]
+    rel_odo = np.swapaxes(R_odo[i], 1, 2) @ R_odo[i + 1]
+    var = robust_rms(relative_difference(rel_ins, rel_odo)) ** 2
+    if ground is not None:
+        sel = (ground["j"] - ground["k"] == 1) & covered[ground["k"]] & covered[ground["j"]]
+        kk, jj = ground["k"][sel], ground["j"][sel]
+        v = hat_variances(
+            {
+                "ins": np.swapaxes(R_ins[kk], 1, 2) @ R_ins[jj],
+                "odometry": np.swapaxes(R_odo[kk], 1, 2) @ R_odo[jj],
+                "ground": ground["T_k_j"][sel][:, :3, :3],
+            }
+        )
+        if v is not None:
+            var[:2] = v["ins"]
+    white = np.clip(np.sqrt(var / 2.0), INS_WHITE_FLOOR, sig.ins_r)
+    for name, w in zip(("roll", "pitch", "heading"), white, strict=True):
+        health.metrics[f"fused_ins_white_{name}_deg"] = float(np.degrees(w))
+    return white
 
 
 def _velocity_steps(
@@ -850,13 +915,12 @@ def _bias_step_sigmas(
     sig: Sigmas,
     ground: dict | None = None,
 ) -> F64:
-    """(6,) sigmas of the INS bias' change between knots: attitude about world x, y, z
-    (rad), position along world x, y, z (m), from the INS's wander against the odometry
-    (roll and pitch against the ground pairs where there are some: :func:`_ins_level_wander`).
-
-    The attitude's horizontal axes take the larger of the roll and pitch wander, the
-    vertical the heading's. Where the odometry is degenerate along the track it cannot judge
-    the INS positions, which then keep the floor: they carry the along-track motion.
+    """(6,) sigmas of the INS bias' change between knots: attitude about the track's axes
+       (roll, pitch, heading: :func:`_track_axes`, rad), position along world x, y, z (m),
+       from the INS's wander against the odometry (roll and pitch against the ground pairs
+       where there are some: :func:`_ins_level_wander`).
+    Where the odometry is degenerate along the track it cannot judge
+       the INS positions, which then keep the floor: they carry the along-track motion.
     """
     a_floor, a_default, a_cap = sig.att_bias_step
     p_floor, p_default, p_cap = sig.pos_bias_step
@@ -876,10 +940,16 @@ def _bias_step_sigmas(
     level = _ins_level_wander(
         ins.T_world_base[:, :3, :3], T_odo[:, :3, :3], ground, times, sig.bias_knot_s
     )
+    floor = np.full(3, a_floor)
     if level is not None:  # the ground's roll and pitch drift far less than the odometry's
         rot[:2] = level
+        # The hat measures the INS's own wander, not a bound: it may go below the floor
+        # that guards the odometry-only measurement (a good INS wanders by thousandths of
+        # a degree a second; held to 0.01 deg its roll over 30 frames followed the
+        # odometry's, 0.017 deg against its own 0.002).
+        floor[:2] = INS_WHITE_FLOOR
         health.metrics["fused_ins_wander_source_level"] = 1.0
-    out[:3] = np.clip([max(rot[0], rot[1])] * 2 + [rot[2]], a_floor, a_cap)
+    out[:3] = np.clip(rot, floor, a_cap)  # about the track's axes (Problem.R_bias)
     out[3:] = np.clip(w.position_m, p_floor, p_cap)
     if degenerate:
         out[3:] = p_floor
@@ -910,17 +980,27 @@ def _ins_level_wander(
     sel = lags == lag
     if lag < 2 or int(np.sum(sel)) < MIN_NOISE_PAIRS:
         return None
-    kk, jj = ground["k"][sel], ground["j"][sel]
-    rel = {
-        "ins": np.swapaxes(R_ins[kk], 1, 2) @ R_ins[jj],
-        "odometry": np.swapaxes(R_odo[kk], 1, 2) @ R_odo[jj],
-        "ground": ground["T_k_j"][sel][:, :3, :3],
-    }
-    v = hat_variances(rel)
+
+    def ins_variance(sel: NDArray[np.bool_]) -> F64 | None:
+        kk, jj = ground["k"][sel], ground["j"][sel]
+        rel = {
+            "ins": np.swapaxes(R_ins[kk], 1, 2) @ R_ins[jj],
+            "odometry": np.swapaxes(R_odo[kk], 1, 2) @ R_odo[jj],
+            "ground": ground["T_k_j"][sel][:, :3, :3],
+        }
+        v = hat_variances(rel)
+        return None if v is None else v["ins"]
+
+    v = ins_variance(sel)
     if v is None:
         return None
+    # less the white noise, which the one-step pairs show (see ins_wander)
+    v1 = ins_variance(lags == 1)
+    if v1 is not None:
+        v = np.maximum(v - v1, 0.0)
+    kk, jj = ground["k"][sel], ground["j"][sel]
     span = float(np.median(times[jj] - times[kk]))
-    return np.sqrt(v["ins"]) * np.sqrt(knot_s / max(span, 1e-3))
+    return np.sqrt(v) * np.sqrt(knot_s / max(span, 1e-3))
 
 
 def _heading_change_deg(R_world_base: F64) -> float:
