@@ -172,3 +172,18 @@ def test_blind_lidars_never_see_the_first_metres_ahead(tmp_path):
         np.testing.assert_array_equal(b.fields["x"], a.fields["x"][~near])
     with pytest.raises(ValueError, match="lidar_blind_ahead_m"):
         SynthConfig(lidar_blind_ahead_m=-1.0)
+
+
+def test_synth_cli_passes_the_new_sequence_options(tmp_path, capsys):
+    """``osdar-ar synth --bogies 3,19 --lidar-blind-ahead 7``: the meta records them; a
+    malformed pair is a one-line CLI error naming the flag."""
+    from worker.cli import main
+
+    out = tmp_path / "bogies"
+    args = ["synth", str(out), "--scene", "tight_curve", "--frames", "2", "--scale", "0.05"]
+    rc = main([*args, "--lidar-density", "0.05", "--bogies", "3,19", "--lidar-blind-ahead", "7"])
+    assert rc == 0
+    meta = json.loads((out / "ground_truth" / "meta.json").read_text())
+    assert meta["bogies"] == [3.0, 19.0] and meta["lidar_blind_ahead_m"] == 7.0
+    assert main(["synth", str(tmp_path / "bad"), "--bogies", "3"]) == 2
+    assert "--bogies wants two numbers" in capsys.readouterr().err

@@ -55,6 +55,9 @@ def run(args: argparse.Namespace) -> int:
             dropped_frames=drops,
             pcd_data=args.pcd_data,
             calibration=args.calibration,
+            bogies=_pair(args.bogies, "--bogies"),
+            lidar_blind_ahead_m=args.lidar_blind_ahead,
+            lidar_merge_error=_pair(args.merge_error, "--merge-error"),
         )
     except ValueError as exc:
         raise CliError(str(exc)) from exc
@@ -72,3 +75,14 @@ def run(args: argparse.Namespace) -> int:
         + ", ".join(f"{k} {v:.1f} s" for k, v in res.stage_seconds.items())
     )
     return 0
+
+
+def _pair(text: str | None, flag: str) -> tuple[float, float] | None:
+    """ "A,B" -> (A, B); None stays None."""
+    if text is None:
+        return None
+    try:
+        a, b = (float(v) for v in text.split(","))
+    except ValueError:
+        raise CliError(f"{flag} wants two numbers separated by a comma, got {text!r}") from None
+    return a, b

@@ -663,6 +663,10 @@ def _write_ground_truth(
                 ).model_dump_json()
             ),
             "speed_mps": traj.speed,
+            "lidar_density": cfg.lidar_density,
+            "lidar_merge_error": cfg.lidar_merge_error,
+            "lidar_blind_ahead_m": cfg.lidar_blind_ahead_m,
+            "bogies": None if cfg.bogies is None else list(cfg.bogies),
             "T_world_scene": {"translation": t_.tolist(), "quaternion": q_.tolist()},
             "pixel_convention": "OpenCV: integer coordinates at pixel centres, full resolution",
         },

@@ -48,6 +48,27 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--speed", type=float, default=None, help="train speed m/s (scene default)")
     p.add_argument("--stationary", action="store_true", help="train stands still")
     p.add_argument(
+        "--bogies",
+        default=None,
+        metavar="OVERHANG,SPACING",
+        help="the train body on two bogies, e.g. 3,19: the base OVERHANG m ahead of the "
+        "front bogie, bogie centres SPACING m apart (default: the base on the centreline)",
+    )
+    p.add_argument(
+        "--lidar-blind-ahead",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="the lidars see nothing nearer than M m ahead of the base (default 0)",
+    )
+    p.add_argument(
+        "--merge-error",
+        default=None,
+        metavar="DEG,M",
+        help="per-lidar calibration error of the merged clouds (rotation deg, translation m "
+        "standard deviations; default: the INS profile's, 0.03,0.015 for osdar23)",
+    )
+    p.add_argument(
         "--far-origin",
         action="store_true",
         help="build and render the scene at UTM magnitudes (hard case 1)",
