@@ -157,6 +157,11 @@ class Settings(BaseSettings):
             raise ValueError("refusing to start in prod: " + "; ".join(problems))
 
     @property
+    def prepared_cache_dir(self) -> Path:
+        """Where prepared sequences are cached (the workers' and the CLI's alike)."""
+        return Path(self.cache_dir) / "prepared"
+
+    @property
     def is_sqlite(self) -> bool:
         return str(self.database_url).startswith("sqlite")
 

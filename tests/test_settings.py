@@ -123,3 +123,12 @@ def test_celery_side_agrees_with_the_catalog() -> None:
     from worker.preparation.localization import STRATEGIES as PIPELINE_STRATEGIES
 
     assert tuple(STRATEGIES) == tuple(PIPELINE_STRATEGIES)
+
+
+def test_one_prepared_cache_for_workers_and_cli(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``$OSDAR_AR_CACHE_DIR`` is the workers' cache; prepared sequences live in its
+    ``prepared/``, for the job runner and ``osdar-ar prepare / augment / evaluate`` alike."""
+    monkeypatch.setenv("OSDAR_AR_CACHE_DIR", "/srv/cache")
+    assert Settings().prepared_cache_dir == Path("/srv/cache/prepared")
+    monkeypatch.delenv("OSDAR_AR_CACHE_DIR")
+    assert Settings(data_dir=Path("/d")).prepared_cache_dir == Path("/d/cache/prepared")

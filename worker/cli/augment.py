@@ -4,12 +4,11 @@ annotations), the result written in the OSDaR23 layout."""
 from __future__ import annotations
 
 import argparse
-import os
-from pathlib import Path
 
 from pydantic import ValidationError
 
 from osdar_platform.catalog import STRATEGY_NAMES
+from osdar_platform.settings import get_settings
 from worker.augmentation.augment import augment
 from worker.augmentation.placement import PlacementError
 from worker.augmentation.plan import AugmentError
@@ -75,9 +74,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"{args.out} exists: choose another folder or pass --force")
     if args.out.resolve() == args.sequence.resolve():
         raise CliError("--out must not be the input sequence")
-    cache_dir = args.cache_dir or Path(
-        os.environ.get("OSDAR_AR_CACHE_DIR", Path.home() / ".cache/osdar-ar/prepared")
-    )
+    cache_dir = args.cache_dir or get_settings().prepared_cache_dir
     bar = progress_bar(0, f"augment {args.sequence.name}")
 
     def progress(done: int, total: int) -> None:

@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
-from pathlib import Path
 from typing import Any
 
+from osdar_platform.settings import get_settings
 from worker.cli.errors import CliError
 from worker.evaluation.evaluate import (
     evaluate_strategies,
@@ -35,9 +34,7 @@ def run(args: argparse.Namespace) -> int:
         }
     except (ClicksError, ValueError) as exc:
         raise CliError(str(exc)) from exc
-    cache = args.cache_dir or Path(
-        os.environ.get("OSDAR_AR_CACHE_DIR", Path.home() / ".cache/osdar-ar/prepared")
-    )
+    cache = args.cache_dir or get_settings().prepared_cache_dir
     tracks, prep, world = {}, {}, None
     for s, cfg in configs.items():
         t0 = time.perf_counter()

@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-from pathlib import Path
 from typing import Any
 
 from pydantic import ValidationError
 
+from osdar_platform.settings import get_settings
 from worker.cli.errors import CliError
 from worker.cli.progress import progress_bar
 from worker.evaluation.pose_error import pose_error_rows
@@ -42,9 +41,7 @@ def _prepare_config(args: argparse.Namespace) -> PrepareConfig:
 
 def run(args: argparse.Namespace) -> int:
     config = _prepare_config(args)
-    cache_dir = args.cache_dir or Path(
-        os.environ.get("OSDAR_AR_CACHE_DIR", Path.home() / ".cache/osdar-ar/prepared")
-    )
+    cache_dir = args.cache_dir or get_settings().prepared_cache_dir
     bar = progress_bar(len(STAGES), f"prepare {args.sequence.name}")
     bar.unit = "stage"
 

@@ -40,5 +40,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "--overlay-frames", default=None, help="comma-separated frames (default: 3 per camera)"
     )
     p.add_argument("--no-overlay", action="store_true")
-    p.add_argument("--cache-dir", type=Path, default=None, help="prepared artifacts cache")
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="cache of prepared artifacts (default: prepared/ in the workers' cache, "
+        "$OSDAR_AR_CACHE_DIR, itself default ./var/cache)",
+    )
     p.set_defaults(command_group="evaluate")

@@ -31,7 +31,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "--cache-dir",
         type=Path,
         default=None,
-        help="cache of prepared artifacts (default $OSDAR_AR_CACHE_DIR or "
-        "~/.cache/osdar-ar/prepared)",
+        help="cache of prepared artifacts (default: prepared/ in the workers' cache, "
+        "$OSDAR_AR_CACHE_DIR, itself default ./var/cache)",
     )
     p.set_defaults(command_group="prepare")
