@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from geometry.camera import CameraModel, load_cameras
-from worker.augmentation.finish import METRICS_FILE, finish_augmentation, jsonable
+from worker.augmentation.finish import METRICS_FILE, finish_augmentation
 from worker.augmentation.placement import (
     PlacementError,
 )
@@ -45,6 +45,7 @@ from worker.augmentation.pool import (
     start_pool,
 )
 from worker.augmentation.spec import AugmentSpec
+from worker.json_values import jsonable
 from worker.preparation.calibration_point import Clicks
 from worker.preparation.config import PrepareConfig
 from worker.preparation.prepare import prepare

@@ -8,7 +8,6 @@ from __future__ import annotations
 import copy
 import json
 import logging
-import math
 import os
 import time
 from pathlib import Path
@@ -23,6 +22,7 @@ from worker.augmentation.annotations import (
 from worker.augmentation.frame import STAGE_KEYS, ChunkResult, FrameRecord
 from worker.augmentation.plan import Plan
 from worker.evaluation.object_error import evaluate_object
+from worker.json_values import jsonable
 from worker.osdar.labels import load_labels
 from worker.osdar.writer import SequenceWriter
 
@@ -241,19 +241,3 @@ def _lidar_counts(plan: Plan, records: list[FrameRecord]) -> dict[str, Any] | No
         "object_points_max": int(max(pts, default=0)),
         "candidate_rays_total": int(sum(r.lidar_candidates for r in records)),
     }
-
-
-def jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(float(obj)) else None
-    return obj

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
-import math
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -37,6 +36,7 @@ import numpy as np
 
 from geometry.camera import load_cameras
 from geometry.poses import PoseTrack
+from worker.json_values import jsonable
 from worker.orchestration.malloc_tuning import tune_malloc
 from worker.osdar.sequence import Sequence
 from worker.preparation.artifact import (
@@ -91,6 +91,8 @@ STAGES = (
 # consumer sees the points as recorded, and a per-frame filter would cost more than it saves).
 FRAME_CLOUD_RANGE_M = 100.0
 FRAME_CLOUD_VOXEL_M = 0.0
+#: Arrays in the preparation summary longer than this are noted by their shape only.
+SUMMARY_MAX_ARRAY = 64
 
 
 class PreparationError(Exception):
@@ -450,25 +452,6 @@ def _view_points(cloud: RegisteredCloud, track: PoseTrack) -> np.ndarray:
     return track.positions[order][k]
 
 
-def _jsonable(obj: Any) -> Any:
-    """Plain JSON values (numpy scalars/arrays converted, NaN/inf -> None, others -> str)."""
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist()) if obj.size <= 64 else f"array{list(obj.shape)}"
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(float(obj)) else None
-    if obj is None or isinstance(obj, str):
-        return obj
-    return str(obj)
-
-
 def _tracks_summary(tr: Any) -> dict[str, Any]:
     return {
         "backend": tr.backend,
@@ -477,7 +460,7 @@ def _tracks_summary(tr: Any) -> dict[str, Any]:
         "ego_length_m": None if tr.ego is None else tr.ego.length,
         "rail_points": len(tr.rail_points),
         "warnings": list(tr.warnings),
-        "metrics": _jsonable(tr.metrics),
+        "metrics": jsonable(tr.metrics, SUMMARY_MAX_ARRAY),
     }
 
 
@@ -494,7 +477,7 @@ def _summary(
     frames = seq.frame_indices
     odo_health, pre_tracks, pre_cloud = setup.odo_health, setup.pre_tracks, setup.pre_cloud
     tracks, cloud, scene = final.tracks, final.cloud, final.scene
-    return _jsonable(
+    return jsonable(
         {
             "artifact_version": ARTIFACT_VERSION,
             "key": key,
@@ -536,5 +519,6 @@ def _summary(
                 "warnings": scene.warnings,
             },
             "calibration": None if cal is None else cal.summary(),
-        }
+        },
+        SUMMARY_MAX_ARRAY,
     )
