@@ -7,6 +7,13 @@ height] and a closed ``poly2d`` outline of the visible mask. Names follow OSDaR2
 flags, and provenance (``isSynthetic`` true, ``generator`` osdar-ar, ``osdarArClass``, the
 exact obstacle). OSDaR23 has no class for rocks or fallen trees: they are typed
 ``obstacle`` (animals ``animal``, people ``person``), the exact class in ``osdarArClass``.
+
+Gauge labels (:mod:`~worker.augmentation.gauge`), on every element of the frame when the
+plan has them: boolean ``gaugeIntrusion`` (inside the train's clearance envelope ahead),
+num ``gaugeLateralDistanceM`` (to the envelope's side, negative inside) and
+``trackDistanceM`` (along the ego track from the train, negative behind); on a camera's
+``bbox`` and ``poly2d`` also num ``visiblePixels`` (the object's visible mask in that
+camera). A dataset user filters by them.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from numpy.typing import NDArray
 
 from geometry.transforms import invert_T, matrix_to_quat, transform_points
 from renderer.mesh import ObjectMesh
+from worker.augmentation.gauge import GaugeLabel
 from worker.osdar.labels import frame_intervals
 
 F64 = NDArray[np.float64]
@@ -58,6 +66,11 @@ def occlusion_bucket(visible_fraction: float) -> str:
 #: Name of the per-frame ``num`` attribute of a camera's bbox: the 90 % bound (px) on the
 #: object's placement error in that camera (OSDaR23 attributes are camelCase).
 PLACEMENT_BOUND_ATTRIBUTE = "arPlacementBoundPx"
+#: Gauge labels (module docstring): boolean, num (m), num (m), and num (px) per camera.
+GAUGE_INTRUSION_ATTRIBUTE = "gaugeIntrusion"
+GAUGE_LATERAL_ATTRIBUTE = "gaugeLateralDistanceM"
+TRACK_DISTANCE_ATTRIBUTE = "trackDistanceM"
+VISIBLE_PIXELS_ATTRIBUTE = "visiblePixels"
 
 
 @dataclass
@@ -71,6 +84,8 @@ class CameraView:
     #: 90 % bound (px) on the object's placement error in this camera
     #: (:mod:`~worker.augmentation.confidence`); None: not known
     placement_bound_px: float | None = None
+    #: pixels of the object's visible mask (alpha > 0.5); None: not known
+    visible_pixels: int | None = None
 
 
 @dataclass
@@ -81,6 +96,18 @@ class FrameAnnotation:
     cuboid: list[float]  # [x, y, z, qx, qy, qz, qw, sx, sy, sz]
     views: dict[str, CameraView] = field(default_factory=dict)
     lidar_indices: list[int] | None = None
+    #: the object against the train's clearance envelope in this frame (None: not known)
+    gauge: GaugeLabel | None = None
+
+
+def gauge_attributes(g: GaugeLabel | None) -> tuple[dict[str, bool], dict[str, float]]:
+    """The boolean and num attributes of a gauge label (empty without one)."""
+    if g is None:
+        return {}, {}
+    return {GAUGE_INTRUSION_ATTRIBUTE: bool(g.intrusion)}, {
+        GAUGE_LATERAL_ATTRIBUTE: round(g.lateral_distance_m, 3),
+        TRACK_DISTANCE_ATTRIBUTE: round(g.track_distance_m, 3),
+    }
 
 
 def cuboid_in_lidar(obj: ObjectMesh, T_world_obj: F64, T_world_base: F64) -> list[float]:
@@ -234,26 +261,37 @@ def _add_lidar_elements(
     """The cuboid and, when known, the vector of the lidar points on the object."""
     any_occl = min((v.visible_fraction for v in fa.views.values()), default=1.0)
     base_text = {"occlusion": occlusion_bucket(any_occl), **provenance}
-    booleans = {"isSynthetic": True}
+    g_bool, g_num = gauge_attributes(fa.gauge)
+    booleans = {"isSynthetic": True, **g_bool}
+    nums = g_num or None
     cub_name = f"{lidar_cs}__cuboid__{otype}"
-    fd.add("cuboid", cub_name, lidar_cs, fa.cuboid, "cuboid", base_text, booleans)
+    fd.add("cuboid", cub_name, lidar_cs, fa.cuboid, "cuboid", base_text, booleans, numbers=nums)
     if fa.lidar_indices is not None:
         indices = [int(i) for i in fa.lidar_indices]
-        fd.add("vec", f"{lidar_cs}__vec__{otype}", lidar_cs, indices, "vec", base_text, booleans)
+        fd.add("vec", f"{lidar_cs}__vec__{otype}", lidar_cs, indices, "vec", base_text, booleans,
+               numbers=nums)  # fmt: skip
 
 
 def _add_camera_elements(
-    fd: _FrameData, cam: str, view: CameraView, otype: str, provenance: dict[str, str]
+    fd: _FrameData,
+    cam: str,
+    view: CameraView,
+    otype: str,
+    provenance: dict[str, str],
+    gauge: GaugeLabel | None = None,
 ) -> None:
     """The bounding box and, for outlines of at least 3 points, the poly2d in one camera."""
     text = {"occlusion": occlusion_bucket(view.visible_fraction), **provenance}
-    b = {"isSynthetic": True, "isTruncated": bool(view.truncated)}
+    g_bool, g_num = gauge_attributes(gauge)
+    b = {"isSynthetic": True, "isTruncated": bool(view.truncated), **g_bool}
     bbox = [float(v) for v in view.bbox]
-    nums = (
-        None if view.placement_bound_px is None
-        else {PLACEMENT_BOUND_ATTRIBUTE: round(view.placement_bound_px, 3)}
-    )  # fmt: skip
-    fd.add("bbox", f"{cam}__bbox__{otype}", cam, bbox, f"{cam}/bbox", text, b, numbers=nums)
+    shape_nums = dict(g_num)
+    if view.visible_pixels is not None:
+        shape_nums[VISIBLE_PIXELS_ATTRIBUTE] = float(view.visible_pixels)
+    nums = dict(shape_nums)
+    if view.placement_bound_px is not None:
+        nums[PLACEMENT_BOUND_ATTRIBUTE] = round(view.placement_bound_px, 3)
+    fd.add("bbox", f"{cam}__bbox__{otype}", cam, bbox, f"{cam}/bbox", text, b, numbers=nums or None)
     if len(view.outline) >= 6:
         fd.add(
             "poly2d",
@@ -264,6 +302,7 @@ def _add_camera_elements(
             text,
             b,
             extra={"closed": True, "mode": "MODE_POLY2D_ABSOLUTE"},
+            numbers=shape_nums or None,
         )
 
 
@@ -293,7 +332,7 @@ def add_object(
         fd = _FrameData(fa.frame_idx, seed, pointers)
         _add_lidar_elements(fd, fa, otype, lidar_cs, provenance)
         for cam, view in sorted(fa.views.items()):
-            _add_camera_elements(fd, cam, view, otype, provenance)
+            _add_camera_elements(fd, cam, view, otype, provenance, fa.gauge)
         ol["frames"][fkey].setdefault("objects", {})[oid] = {"object_data": fd.data}
     ol.setdefault("objects", {})[oid] = {
         "name": f"{obj_class}_synthetic_{n_existing + 1:04d}",

@@ -172,6 +172,7 @@ def _metrics(
         "cameras": _camera_counts(plan, records),
         "lidar": _lidar_counts(plan, records),
         "placement_bound_px": _bound_summary(plan, records),
+        "gauge": _gauge_summary(plan, records),
         "timings_s": {
             **{f"plan_{k}": v for k, v in plan.timings.items()},
             **{f"frames_{k}": v for k, v in stages.items()},
@@ -216,6 +217,23 @@ def _bound_summary(plan: Plan, records: list[FrameRecord]) -> dict[str, Any]:
             if b else None
         )  # fmt: skip
     return out
+
+
+def _gauge_summary(plan: Plan, records: list[FrameRecord]) -> dict[str, Any] | None:
+    """The object against the clearance envelope over the annotated frames (the labels
+    carry it per frame); None without an ego track."""
+    if not plan.gauge:
+        return None
+    g = [plan.gauge[r.frame_idx] for r in records
+         if r.annotation is not None and r.frame_idx in plan.gauge]  # fmt: skip
+    dist = [x.track_distance_m for x in g]
+    return {
+        "lateral_distance_m": next(iter(plan.gauge.values())).lateral_distance_m,
+        "intrusion_frames": sum(x.intrusion for x in g),
+        "annotated_frames": len(g),
+        "track_distance_m": [min(dist), max(dist)] if dist else None,
+        "outline": plan.spec.gauge.model_dump(),
+    }
 
 
 def _camera_counts(plan: Plan, records: list[FrameRecord]) -> dict[str, Any]:

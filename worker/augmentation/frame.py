@@ -141,7 +141,7 @@ def _shift_view(view: CameraView, d: tuple[float, float]) -> CameraView:
         return view
     bb = (view.bbox[0] + d[0], view.bbox[1] + d[1], view.bbox[2], view.bbox[3])
     out = [v + d[i % 2] for i, v in enumerate(view.outline)]
-    return CameraView(bb, out, view.visible_fraction, view.truncated, view.placement_bound_px)
+    return dataclasses.replace(view, bbox=bb, outline=out)
 
 
 def _truncated(cam: CameraModel, obj: ObjectMesh, T_world_obj: F64, T_world_base: F64) -> bool:
@@ -271,6 +271,7 @@ def _camera_frame(
                 float(render.visible_fraction),
                 trunc,
                 plan.placement_bounds.get(frame, {}).get(name),
+                int(np.count_nonzero(render.alpha > 0.5)),
             ),
             offset,
         )
@@ -456,6 +457,7 @@ def augment_frame(plan: Plan, frame: int, out_root: Path) -> tuple[FrameRecord, 
             cuboid_in_lidar(plan.obj_full, plan.T_world_obj, T_lidar),
             views,
             lidar_idx if plan.lidar_stream is not None else None,
+            plan.gauge.get(frame),
         )
         if ann.lidar_indices is None and plan.lidar_stream is not None:
             ann.lidar_indices = []

@@ -17,12 +17,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from geometry.camera import CameraModel, load_cameras
+from geometry.transforms import transform_points
 from renderer.assets import MeshError, build_obstacle, choose_detail, load_user_mesh, simplify
 from renderer.assets.lod import FACES_PER_PX
 from renderer.lidar_cast import origins_from_json
 from renderer.lighting import Lighting, estimate_lighting, sun_dir_enu
 from renderer.mesh import ObjectMesh, ProxyMesh
 from worker.augmentation.confidence import placement_bounds
+from worker.augmentation.gauge import GaugeLabel, gauge_labels
 from worker.augmentation.placement import (
     RAIL_HEIGHT_ABOVE_BED,
     ResolvedPlacement,
@@ -82,6 +84,8 @@ class Plan:
     info: dict[str, Any] = field(default_factory=dict)
     #: frame -> camera -> 90 % bound (px) on the placement error (confidence.py)
     placement_bounds: dict[int, dict[str, float]] = field(default_factory=dict)
+    #: frame -> the object against the train's clearance envelope (gauge.py; {}: no ego)
+    gauge: dict[int, GaugeLabel] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------------- planning
@@ -402,4 +406,16 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
             prepared.track, getattr(prepared, "information", None), view.cams, view.poses,
             T_world_obj, view.frames,
         ),
+        gauge=_gauge(spec, prepared, obj, T_world_obj, view),
     )  # fmt: skip
+
+
+def _gauge(
+    spec: AugmentSpec, prepared: Any, obj: ObjectMesh, T_world_obj: F64, view: _Opened
+) -> dict[int, GaugeLabel]:
+    """The gauge label per frame of the range, at the poses the annotations use (the
+    lidar's, else the first camera's)."""
+    stream = view.lidar_stream or view.cam_names[0]
+    poses = {f: view.poses[stream][f] for f in view.frames if f in view.poses[stream]}
+    p_world = transform_points(T_world_obj, obj.vertices)
+    return gauge_labels(prepared.ego, p_world, poses, spec.gauge)

@@ -27,6 +27,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from worker.augmentation.gauge import GaugeOutline
 from worker.augmentation.placement import PlacementError, PlacementSpec, parse_place
 
 #: The front cameras augmented by default (those of them the sequence has).
@@ -170,6 +171,8 @@ class AugmentSpec(_Section):
     lidar_origins: str = "single"
     clicks: dict[str, Any] | None = None  # Clicks.to_json() layout, for the preparation
     render: RenderSpec = Field(default_factory=RenderSpec)
+    #: the clearance envelope of the gauge labels (worker/augmentation/gauge.py)
+    gauge: GaugeOutline = Field(default_factory=GaugeOutline)
 
     @field_validator("frame_range")
     @classmethod
@@ -228,7 +231,11 @@ class AugmentSpec(_Section):
         """
         obj = d.get("object") or {}
         if obj.get("builtin") is not None:
-            source = ObjectSource(builtin=obj["builtin"], scale=float(obj.get("scale", 1.0)))
+            source = ObjectSource(
+                builtin=obj["builtin"],
+                scale=float(obj.get("scale", 1.0)),
+                seed=int(obj.get("seed", 0)),  # a campaign's variation seed
+            )
         elif obj.get("asset_id") is not None:
             if mesh_bytes is None or file_type is None:
                 raise ValueError(
