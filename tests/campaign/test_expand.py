@@ -206,3 +206,20 @@ def test_rules_apply_to_their_sequences_only() -> None:
     variants = expand(spec, {KEY: with_platform, "seq/plain": straight_prepared()})
     zones = {(v.sequence_label, v.objects[0].resolved.zone) for v in variants}
     assert zones == {("straight", "platform"), ("straight", "track"), ("plain", "track")}
+
+
+def test_pieces_of_one_platform_are_joined() -> None:
+    """The preparation outlines a platform per 40 m piece, with gaps between: a footprint
+    in a gap still meets the platform's edge."""
+    from worker.campaign.placement import SequenceGeometry, platform_outlines
+
+    pieces = [platform(100.0, 149.0, -1.75, -8.0), platform(151.0, 200.0, -1.75, -8.0),
+              platform(120.0, 180.0, 2.0, 6.0)]  # fmt: skip
+    prepared = straight_prepared(planes=pieces)
+    (left, right) = platform_outlines(pieces, prepared.ego)
+    assert (left.side, right.side) == ("left", "right")
+    assert right.s_range == (100.0, 200.0) and right.lateral == (-8.0, -1.75)
+    geom = SequenceGeometry.from_prepared(prepared, key=KEY, label="straight")
+    fp = Footprint((-0.3, 0.3), (-0.3, 0.3), 1.8)
+    assert "across the edge" in str(geom.conflict(Placed(fp, 150.0, -1.9, 0.0), clearance=0.1))
+    assert geom.conflict(Placed(fp, 150.0, -4.0, 0.0), clearance=0.1, zone="platform") is None

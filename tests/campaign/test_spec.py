@@ -125,3 +125,17 @@ def test_too_many_variants_is_an_error() -> None:
             "obstacles": [{"builtin": "rock", "seeds": seeds}], "draws": 11}  # fmt: skip
     with pytest.raises(ValidationError, match="more than 10000 variants"):
         CampaignSpec.model_validate(spec)
+
+
+def test_placements_filter_obstacles() -> None:
+    spec = parse_spec(
+        "name: t\nsequences: [{path: a}]\n"
+        "obstacles: [{builtin: person, seeds: [0, 1]}, {builtin: fallen_tree}, {asset_id: x9}]\n"
+        "placements: [{zone: track, obstacles: [person, x9]}, {zone: crossing, "
+        "obstacles: [fallen_tree]}]\ndraws: 2\n"
+    )
+    assert spec.object_count() == 2 * (2 + 1) + 2 * 1
+    assert "name no obstacle of the campaign" in _errors(
+        "name: t\nsequences: [{path: a}]\nobstacles: [{builtin: rock}]\n"
+        "placements: [{zone: track, obstacles: [cow]}]"
+    )

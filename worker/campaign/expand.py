@@ -173,7 +173,8 @@ class _Expansion:
                 if not self.spec.applies(p, entry) or (isinstance(p, ExplicitPlacement) and draw):
                     continue
                 for oi, ob in enumerate(self.spec.obstacles):
-                    out.extend(_Item(pi, draw, oi, s) for s in ob.variation_seeds)
+                    if self.spec.places(p, ob):
+                        out.extend(_Item(pi, draw, oi, s) for s in ob.variation_seeds)
         return out
 
     # ---------------------------------------------------------------- rules

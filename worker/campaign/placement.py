@@ -33,6 +33,10 @@ F64 = NDArray[np.float64]
 
 #: How far beyond the envelope's edge the zone ``beside`` reaches (object centre, m).
 BESIDE_WIDTH_M = 5.0
+#: Platform pieces on one side closer than this along the track (m) are one platform: the
+#: preparation fits a plane per 40 m of track and outlines it through its bins' centres,
+#: which leaves gaps of about one outline step between the pieces of one real platform.
+PLATFORM_JOIN_GAP_M = 5.0
 #: Footprint samples per side for the platform tests (n x n points).
 _SAMPLES = 7
 
@@ -171,14 +175,28 @@ def points_in_polygon(p: F64, poly: F64) -> NDArray[np.bool_]:
 
 @dataclass(frozen=True)
 class PlatformOutline:
-    """A platform in track coordinates: ``outline`` (k, 2) [s, lateral] polygon, its side,
-    arc-length and lateral ranges (m), its index among the preparation's planes."""
+    """A platform in track coordinates: its near edge and far side as rows [s, lateral]
+    (k, 2) each, in track order; its side and the index of its (first) preparation plane."""
 
     index: int
     side: str
-    outline: F64
-    s_range: tuple[float, float]
-    lateral: tuple[float, float]
+    near: F64
+    far: F64
+
+    @property
+    def outline(self) -> F64:
+        """(2k, 2) the closed outline [s, lateral]."""
+        return np.vstack([self.near, self.far[::-1]])
+
+    @property
+    def s_range(self) -> tuple[float, float]:
+        o = self.outline
+        return float(o[:, 0].min()), float(o[:, 0].max())
+
+    @property
+    def lateral(self) -> tuple[float, float]:
+        o = self.outline
+        return float(o[:, 1].min()), float(o[:, 1].max())
 
     def contains(self, p_sl: F64) -> NDArray[np.bool_]:
         return points_in_polygon(np.asarray(p_sl, dtype=np.float64).reshape(-1, 2), self.outline)
@@ -247,10 +265,7 @@ class SequenceGeometry:
                 )
         T = np.asarray(track.T, dtype=np.float64)
         s0_job = float(ego.project(T[:1, :3, 3]).s[0])
-        platforms = [
-            _platform_outline(i, p, ego) for i, p in enumerate(prepared.planes)
-            if p.kind == "platform" and len(p.polygon) >= 3
-        ]  # fmt: skip
+        platforms = platform_outlines(prepared.planes, ego)
         poles = []
         for pole in prepared.poles:
             axis = np.asarray(pole.axis_xy, dtype=np.float64)[:2]
@@ -402,29 +417,54 @@ class SequenceGeometry:
 
 
 def _platform_outline(index: int, plane: Any, ego: Any) -> PlatformOutline:
+    """A platform plane's outline in track coordinates. The preparation's outline is its
+    near rows then its far rows reversed (scene_elements._outline); the half nearer the
+    centreline is taken as the near edge."""
     poly = np.asarray(plane.polygon, dtype=np.float64).reshape(-1, 3)
     pr = ego.project(poly)
-    outline = np.column_stack([pr.s, pr.lateral])
-    side = plane.side if plane.side in ("left", "right") else (
-        "left" if float(np.median(pr.lateral)) > 0 else "right"
-    )  # fmt: skip
-    return PlatformOutline(
-        index=index,
-        side=side,
-        outline=outline,
-        s_range=(float(pr.s.min()), float(pr.s.max())),
-        lateral=(float(pr.lateral.min()), float(pr.lateral.max())),
-    )
+    sl = np.column_stack([pr.s, pr.lateral])
+    k = len(sl) // 2
+    a, b = sl[:k], sl[k:][::-1]
+    if len(sl) % 2 or k < 2:  # not the preparation's layout: its s-extent at its lateral range
+        s0, s1 = float(sl[:, 0].min()), float(sl[:, 0].max())
+        lat = sorted((float(sl[:, 1].min()), float(sl[:, 1].max())), key=abs)
+        a = np.array([[s0, lat[0]], [s1, lat[0]]])
+        b = np.array([[s0, lat[1]], [s1, lat[1]]])
+    if np.mean(np.abs(a[:, 1])) > np.mean(np.abs(b[:, 1])):
+        a, b = b, a
+    side = "left" if float(np.median(sl[:, 1])) > 0 else "right"
+    near, far = (a, b) if a[0, 0] <= a[-1, 0] else (a[::-1], b[::-1])
+    return PlatformOutline(index=index, side=side, near=near, far=far)
+
+
+def platform_outlines(planes: Sequence[Any], ego: Any) -> list[PlatformOutline]:
+    """The platforms of a preparation in track coordinates, the pieces of one platform
+    joined (:data:`PLATFORM_JOIN_GAP_M`)."""
+    pieces = [_platform_outline(i, p, ego) for i, p in enumerate(planes)
+              if p.kind == "platform" and len(p.polygon) >= 3]  # fmt: skip
+    out: list[PlatformOutline] = []
+    for side in ("left", "right"):
+        mine = sorted((p for p in pieces if p.side == side), key=lambda p: p.s_range[0])
+        for p in mine:
+            last = out[-1] if out and out[-1].side == side else None
+            if last is not None and p.s_range[0] - last.s_range[1] <= PLATFORM_JOIN_GAP_M:
+                out[-1] = PlatformOutline(last.index, side, np.vstack([last.near, p.near]),
+                                          np.vstack([last.far, p.far]))  # fmt: skip
+            else:
+                out.append(p)
+    return out
 
 
 __all__ = [
     "BESIDE_WIDTH_M",
+    "PLATFORM_JOIN_GAP_M",
     "Footprint",
     "GeometryError",
     "Placed",
     "PlatformOutline",
     "PoleSpot",
     "SequenceGeometry",
+    "platform_outlines",
     "points_in_polygon",
     "rectangle_distance",
     "rotated_extent",

@@ -28,6 +28,7 @@ YAML (``examples/osdar_ar_paper.yaml`` is a complete one)::
       - zone: platform
         side: right
         sequences: [data/synth/station]   # the rule applies to these sequences only
+        obstacles: [person]               # and to these obstacles only
       - explicit: {mode: track, s: 45, offset: 0.0, yaw_deg: 90}
     draws: 2                              # each rule drawn twice
     objects_per_sequence: 1
@@ -65,8 +66,10 @@ frame (of the sequence's ``frame_range``) where it lies within ``view_half_angle
 the train's heading and no farther than the rule's upper distance.
 
 Variants: for each sequence, every (draw, placement, obstacle, variation seed) in this
-order is one object; consecutive objects are grouped ``objects_per_sequence`` at a time
-into one variant (the last group may be smaller). Explicit placements are drawn once.
+order is one object, where the placement applies to the sequence and the obstacle (its
+``sequences`` and ``obstacles`` filters); consecutive objects are grouped
+``objects_per_sequence`` at a time into one variant (the last group may be smaller).
+Explicit placements are drawn once.
 
 This module imports only pydantic and the service's request schemas, whose ``ObjectSpec``
 and ``Placement`` it reuses: the spec can be checked where the pipeline is not installed.
@@ -197,6 +200,9 @@ class ExplicitPlacement(_Spec):
     sequences: list[str] | None = Field(
         None, min_length=1, description="keys or names of the sequences it applies to"
     )
+    obstacles: list[str] | None = Field(
+        None, min_length=1, description="classes or asset ids of the obstacles it applies to"
+    )
 
 
 class PlacementRule(_Spec):
@@ -212,6 +218,7 @@ class PlacementRule(_Spec):
     view_half_angle_deg : the cameras' horizontal half field of view for "in view" (the
         front cameras of OSDaR23 have about 15 deg).
     sequences : keys or names of the sequences it applies to (default: all).
+    obstacles : built-in classes or asset ids of the obstacles it applies to (default: all).
     """
 
     zone: Zone = "track"
@@ -221,6 +228,7 @@ class PlacementRule(_Spec):
     lateral_m: tuple[float, float] | None = None
     view_half_angle_deg: float = Field(15.0, gt=0.0, lt=90.0)
     sequences: list[str] | None = Field(None, min_length=1)
+    obstacles: list[str] | None = Field(None, min_length=1)
 
     @field_validator("distance_m")
     @classmethod
@@ -326,6 +334,7 @@ class CampaignSpec(_Spec):
         if len(set(keys)) != len(keys):
             raise ValueError("sequences must not repeat (same id or path twice)")
         known = set(keys) | {s.label for s in self.sequences}
+        classes = {o.builtin or str(o.asset_id) for o in self.obstacles}
         for i, p in enumerate(self.placements):
             unknown = sorted(set(p.sequences or []) - known)
             if unknown:
@@ -333,22 +342,34 @@ class CampaignSpec(_Spec):
                     f"placements[{i}].sequences: {unknown} name no sequence of the campaign "
                     f"(its sequences: {sorted(known)})"
                 )
+            unknown = sorted(set(p.obstacles or []) - classes)
+            if unknown:
+                raise ValueError(
+                    f"placements[{i}].obstacles: {unknown} name no obstacle of the campaign "
+                    f"(its obstacles: {sorted(classes)})"
+                )
         n = self.object_count()
         if -(-n // self.objects_per_sequence) > MAX_VARIANTS:
             raise ValueError(f"the campaign expands into more than {MAX_VARIANTS} variants")
         return self
 
     def applies(self, placement: ExplicitPlacement | PlacementRule, seq: SequenceEntry) -> bool:
+        """Whether a placement applies to a sequence (its ``sequences`` filter)."""
         return placement.sequences is None or bool({seq.key, seq.label} & set(placement.sequences))
+
+    def places(self, placement: ExplicitPlacement | PlacementRule, obstacle: Obstacle) -> bool:
+        """Whether a placement applies to an obstacle (its ``obstacles`` filter)."""
+        name = obstacle.builtin or str(obstacle.asset_id)
+        return placement.obstacles is None or name in placement.obstacles
 
     def object_count(self) -> int:
         """Objects over all sequences (before grouping into variants)."""
-        per_obstacle = sum(len(o.variation_seeds) for o in self.obstacles)
         total = 0
         for seq in self.sequences:
             for p in self.placements:
                 if self.applies(p, seq):
-                    total += per_obstacle * (1 if isinstance(p, ExplicitPlacement) else self.draws)
+                    n = sum(len(o.variation_seeds) for o in self.obstacles if self.places(p, o))
+                    total += n * (1 if isinstance(p, ExplicitPlacement) else self.draws)
         return total
 
 
