@@ -1,0 +1,41 @@
+"""The example campaigns in examples/ parse and expand."""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+from osdar_platform.catalog import BUILTIN_OBJECTS
+from tests.campaign.scenes import platform, straight_prepared
+from worker.campaign.expand import expand
+from worker.campaign.spec import load_spec
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+
+
+def test_the_papers_dataset_is_3_sequences_by_6_classes() -> None:
+    spec = load_spec(EXAMPLES / "osdar_ar_paper.yaml")
+    assert [s.label for s in spec.sequences] == [
+        "3_fire_site_3.1", "5_station_bergedorf_5.1", "6_station_klein_flottbek_6.2"
+    ]  # fmt: skip
+    prepared = {s.key: straight_prepared() for s in spec.sequences}
+    variants = expand(spec, prepared)
+    assert len(variants) == 18
+    per_sequence = Counter((v.sequence_label, v.objects[0].class_name) for v in variants)
+    assert set(per_sequence.values()) == {1}
+    assert {c for _, c in per_sequence} == set(BUILTIN_OBJECTS)
+    for v in variants:
+        r = v.objects[0].resolved
+        assert r.zone in ("track", "crossing") and 30.0 <= r.distance_first_view_m <= 100.0
+        assert (r.zone == "crossing") == (v.objects[0].class_name == "fallen_tree")
+
+
+def test_the_json_example_expands() -> None:
+    spec = load_spec(EXAMPLES / "campaign_rules.json")
+    prepared = {
+        "out/station": straight_prepared(planes=[platform(40.0, 250.0, -1.75, -9.0)]),
+        "out/fire_site": straight_prepared(),
+    }
+    variants = expand(spec, prepared)
+    assert sum(len(v.objects) for v in variants) == spec.object_count()
+    assert all(len(v.objects) <= 3 for v in variants)
