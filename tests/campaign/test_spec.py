@@ -13,6 +13,7 @@ from worker.campaign.spec import (
     PlacementRule,
     load_spec,
     parse_spec,
+    spec_issues,
 )
 
 YAML = """
@@ -139,3 +140,21 @@ def test_placements_filter_obstacles() -> None:
         "name: t\nsequences: [{path: a}]\nobstacles: [{builtin: rock}]\n"
         "placements: [{zone: track, obstacles: [cow]}]"
     )
+
+
+def test_spec_issues_name_the_field() -> None:
+    spec, issues = spec_issues(
+        {"name": "t", "sequences": [{"path": "a"}],
+         "obstacles": [{"builtin": "dragon"}, {"builtin": "rock"}],
+         "placements": [{"zone": "track"}, {"zone": "moon"},
+                        {"explicit": {"mode": "track", "s": -1}}]}
+    )  # fmt: skip
+    assert spec is None
+    where = {i.where: i.message for i in issues}
+    assert "'person', 'rock'" in where["obstacles[0].builtin"]
+    assert "'track', 'gauge_edge'" in where["placements[1].zone"]
+    assert "greater than or equal to 0" in where["placements[2].explicit.track.s"]
+    assert all(i.level == "error" for i in issues)
+    ok, none = spec_issues({"name": "t", "sequences": [{"path": "a"}],
+                            "obstacles": [{"builtin": "rock"}]})  # fmt: skip
+    assert ok is not None and none == []

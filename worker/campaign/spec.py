@@ -88,11 +88,13 @@ from pydantic import (
     Discriminator,
     Field,
     Tag,
+    ValidationError,
     field_validator,
     model_validator,
 )
 
 from service.schemas import CameraName, ObjectSpec, Placement, RenderOptions, Strategy
+from worker.campaign.variant import Issue
 
 Zone = Literal["track", "gauge_edge", "beside", "platform", "crossing"]
 ZONES: tuple[str, ...] = get_args(Zone)
@@ -373,6 +375,32 @@ class CampaignSpec(_Spec):
         return total
 
 
+def _where(loc: tuple[int | str, ...]) -> str:
+    """pydantic's error location as a path: ``placements[0].zone`` (the tag pydantic puts
+    after a placement's index, rule or explicit, dropped)."""
+    out = ""
+    for i, part in enumerate(loc):
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif i == 2 and loc[0] == "placements":
+            continue
+        else:
+            out += f".{part}" if out else str(part)
+    return out or "(the spec)"
+
+
+def spec_issues(data: Any) -> tuple[CampaignSpec | None, list[Issue]]:
+    """A spec mapping validated: the spec (None when invalid) and every error as an
+    :class:`~worker.campaign.variant.Issue` whose ``where`` is the field's path."""
+    try:
+        return CampaignSpec.model_validate(data), []
+    except ValidationError as exc:
+        return None, [
+            Issue("error", _where(tuple(e["loc"])), e["msg"].removeprefix("Value error, "))
+            for e in exc.errors()
+        ]
+
+
 def parse_spec(text: str, *, fmt: Literal["yaml", "json"] = "yaml") -> CampaignSpec:
     """A spec from YAML or JSON text (pydantic's ValidationError when it is invalid)."""
     data = json.loads(text) if fmt == "json" else yaml.safe_load(text)
@@ -402,4 +430,5 @@ __all__ = [
     "Zone",
     "load_spec",
     "parse_spec",
+    "spec_issues",
 ]
