@@ -100,5 +100,21 @@ def test_cli_quick_matrix_writes_json_markdown_and_heatmap(tmp_path: Path, capsy
     assert len(result["cells"]) == len(design(True)) and not result["failed_cells"]
     text = out_md.read_text()
     assert "| fused |" in text and ("MISS" in text or "| ok |" in text)
-    assert (tmp_path / "m_heatmap.png").stat().st_size > 1000
+    assert (tmp_path / "figures" / "m.png").stat().st_size > 1000
+    assert "figures/m.png" in text and "commit " in text
     assert "goals" in capsys.readouterr().out
+
+
+def test_a_regenerated_report_keeps_its_method_text(small_run, tmp_path: Path) -> None:
+    """The documented command rewrites docs/robustness_matrix.md: the text above its
+    figures stays, the old figures go, the new ones carry version, commit and date."""
+    from worker.bench.matrix import FIGURES_HEADING, report_text
+
+    md = tmp_path / "report.md"
+    md.write_text(f"# Title\n\nHow it is measured.\n\n{FIGURES_HEADING}\n\nOLD FIGURES\n")
+    text = report_text(md, small_run, tmp_path / "figures" / "report.png")
+    assert text.startswith("# Title\n\nHow it is measured.\n\n## Figures\n\n")
+    assert "OLD FIGURES" not in text and "| fused |" in text
+    assert "osdar-ar " in text and ", commit " in text
+    fresh = report_text(tmp_path / "new.md", small_run, tmp_path / "figures" / "new.png")
+    assert fresh.startswith("# The robustness matrix") and "figures/new.png" in fresh

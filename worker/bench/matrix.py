@@ -21,9 +21,12 @@ reported, never hidden.
 
 from __future__ import annotations
 
+import datetime
+import importlib.metadata
 import json
 import logging
 import math
+import subprocess
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
@@ -798,15 +801,56 @@ def run_and_report(
     result = run_matrix(Path(workdir) / "sequences", quick=quick, progress=progress)
     outputs: dict[str, str] = {}
     png_base = Path(json_path).with_suffix("") if json_path else Path(workdir) / "matrix"
+    png = Path(f"{png_base}_heatmap.png")
+    if markdown_path is not None:  # the report's figure beside it, as the report links it
+        md = Path(markdown_path)
+        png = md.parent / "figures" / f"{md.stem}.png"
     if result["cells"]:
-        outputs["heatmap"] = str(plot_heatmap(result, f"{png_base}_heatmap.png"))
+        png.parent.mkdir(parents=True, exist_ok=True)
+        outputs["heatmap"] = str(plot_heatmap(result, png))
     if json_path is not None:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         Path(json_path).write_text(json.dumps(result, indent=1))
         outputs["json"] = str(json_path)
     if markdown_path is not None:
-        Path(markdown_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(markdown_path).write_text(to_markdown(result))
-        outputs["markdown"] = str(markdown_path)
+        md = Path(markdown_path)
+        md.parent.mkdir(parents=True, exist_ok=True)
+        md.write_text(report_text(md, result, png))
+        outputs["markdown"] = str(md)
     result["outputs"] = outputs
     return result
+
+
+#: The heading under which a report's figures start; what precedes it in an existing
+#: report (its method text) is kept when the figures are regenerated.
+FIGURES_HEADING = "## Figures"
+
+
+def report_text(md: Path, result: dict[str, Any], png: Path) -> str:
+    """The markdown report: an existing report's text above :data:`FIGURES_HEADING` (else
+    a title and the figure), then the figures stamped with the version, commit and date."""
+    head = f"# The robustness matrix\n\n![lag-10 errors per cell](figures/{png.name})\n\n"
+    if md.is_file() and FIGURES_HEADING in (old := md.read_text()):
+        head = old[: old.index(FIGURES_HEADING)]
+    return f"{head}{FIGURES_HEADING}\n\n{to_markdown(result, stamp=provenance())}"
+
+
+def provenance() -> str:
+    """ "osdar-ar <version>, commit <short hash>, <date>" (the commit when run from a git
+    checkout)."""
+    try:
+        version = importlib.metadata.version("osdar-ar")
+    except importlib.metadata.PackageNotFoundError:
+        version = "unknown"
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = "unknown"
+    return f"osdar-ar {version}, commit {commit}, {datetime.date.today().isoformat()}."
