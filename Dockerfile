@@ -16,8 +16,9 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 WORKDIR /app
 # Dependencies first (cached layer), then the code.
 COPY pyproject.toml README.md ./
-RUN mkdir -p service worker renderer \
+RUN mkdir -p service worker renderer geometry osdar_platform \
  && touch service/__init__.py worker/__init__.py renderer/__init__.py \
+      geometry/__init__.py osdar_platform/__init__.py \
  && pip install . \
  && pip uninstall -y osdar-ar
 COPY alembic.ini ./
@@ -25,6 +26,8 @@ COPY migrations ./migrations
 COPY service ./service
 COPY worker ./worker
 COPY renderer ./renderer
+COPY geometry ./geometry
+COPY osdar_platform ./osdar_platform
 # Editable-style layout: migrations/ is found next to the package (osdar_platform/migrate.py).
 RUN pip install --no-deps -e . \
  && useradd --create-home --uid 10001 osdar \
