@@ -226,7 +226,9 @@ class JobPublic(BaseModel):
     @classmethod
     def from_row(cls, job: Any) -> JobPublic:
         base = f"/v1/jobs/{job.id}"
-        done = job.result_key is not None
+        done = (
+            job.state.value == "SUCCEEDED" and job.result_key is not None
+        )  # as the result routes decide
         return cls(
             id=job.id,
             state=job.state,

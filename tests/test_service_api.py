@@ -622,3 +622,22 @@ def test_registered_paths_must_lie_under_the_configured_roots(
             session=session, owner=owner, path=str(synth_sequence_dir), name="x", settings=inside
         )
         assert seq.frames == 3
+
+
+def test_results_are_served_only_once_the_job_succeeded(api: Api) -> None:
+    """The gate is the state, not whether a result key or metrics happen to be set: a
+    RUNNING job whose row already points at an archive (a stale or re-run attempt) serves
+    no archive, metrics or previews, and its status says no result is available."""
+    job = submit(api)
+    publish_fake_result(api, job["id"], b"tar bytes")
+    with api.sessions.begin() as s:
+        s.execute(update(Job).where(Job.id == job["id"]).values(state=JobState.RUNNING))
+    for what in ("archive", "metrics", "previews", "previews/0"):
+        r = api.client.get(f"/v1/jobs/{job['id']}/{what}", headers=api.h())
+        assert r.status_code == 409 and "RUNNING" in r.json()["detail"], (what, r.text)
+    status = api.client.get(f"/v1/jobs/{job['id']}", headers=api.h()).json()
+    assert status["result_available"] is False
+    with api.sessions.begin() as s:
+        s.execute(update(Job).where(Job.id == job["id"]).values(state=JobState.SUCCEEDED))
+    assert api.client.get(f"/v1/jobs/{job['id']}/archive", headers=api.h()).content == b"tar bytes"
+    assert api.client.get(f"/v1/jobs/{job['id']}/previews", headers=api.h()).json()

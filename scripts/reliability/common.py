@@ -402,6 +402,88 @@ class ApiServer:
         return httpx.Client(base_url=self.url, headers=headers, timeout=kw.pop("timeout", 60), **kw)
 
 
+# ---------------------------------------------------------------------------- load
+class CpuHog:
+    """``processes`` busy-looping processes beside a scenario, as a loaded cluster node
+    has: timing races that an idle machine hides show up under it."""
+
+    def __init__(self, processes: int = 1) -> None:
+        self.processes = max(0, processes)
+        self.procs: list[subprocess.Popen[bytes]] = []
+
+    def __enter__(self) -> CpuHog:
+        for _ in range(self.processes):
+            self.procs.append(subprocess.Popen([sys.executable, "-c", "while True: pass"]))
+        if self.procs:
+            log(f"{len(self.procs)} CPU hog process(es) running")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for p in self.procs:
+            p.kill()
+        for p in self.procs:
+            p.wait(10)
+        self.procs.clear()
+
+
+def hog_processes(quick: bool) -> int:
+    """The scenarios' CPU hog: one process in the reduced form (CI), one per core in full."""
+    return 1 if quick else os.cpu_count() or 2
+
+
+class ResultPoller:
+    """A client polling each watched job's archive, then its state, as a client waiting
+    for its result would. An archive served while the state read AFTER it is not
+    SUCCEEDED is premature (SUCCEEDED is terminal, so a state read after the archive
+    cannot be older than the archive; read before it, it could be, and a job finishing
+    between the two reads was once miscounted as premature)."""
+
+    def __init__(self, http: Any, *, store_up: Callable[[], bool] = lambda: True) -> None:
+        self.http = http
+        self.store_up = store_up
+        self.watched: list[str] = []
+        self.premature = 0
+        self.served = 0
+        self.five_xx = 0
+        self.transport_errors = 0
+        self.polls = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            for jid in list(self.watched):
+                try:
+                    a = self.http.get(f"/v1/jobs/{jid}/archive", headers={"Range": "bytes=0-1"})
+                    r = self.http.get(f"/v1/jobs/{jid}")
+                except httpx.TransportError:  # a keep-alive connection closed by the server
+                    self.transport_errors += 1
+                    continue
+                self.polls += 1
+                self.five_xx += r.status_code >= 500
+                self.five_xx += a.status_code >= 500 and self.store_up()
+                state = r.json().get("state") if r.status_code == 200 else None
+                if a.status_code in (200, 206):
+                    self.served += 1
+                    self.premature += state != "SUCCEEDED"
+            self._stop.wait(0.2)
+
+    def __enter__(self) -> ResultPoller:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(10)
+
+    def figures(self) -> dict[str, int]:
+        return {
+            "api_archive_before_success": self.premature,
+            "poller_archives_served": self.served,
+            "poller_polls": self.polls,
+        }
+
+
 # ---------------------------------------------------------------------------- CLI
 def parser(doc: str | None) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=(doc or "").splitlines()[0] if doc else None)

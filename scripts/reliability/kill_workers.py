@@ -7,6 +7,8 @@ is killed once at a uniformly random moment of its run (measured on a clean job 
 - "worker": SIGKILL of the whole worker (parent and children, like an OOM-killed
   container); a new worker starts; the unacknowledged message comes back after the
   visibility timeout (short here: 22 s).
+A client polls every job's archive and state throughout (premature archives: 0), and
+busy-looping processes load the machine (one in the reduced form, one per core in full).
 Figures: jobs lost (not SUCCEEDED), archives per job in the store (exactly 1, the
 published key), attempts and deliveries recorded, the stage each kill hit, recovery time.
 """
@@ -46,7 +48,14 @@ def run(
         workers = c.Workers(settings, workdir / "worker.log", concurrency=1)
         store = store_from_url(str(settings.store_url), settings)
         records: list[dict[str, Any]] = []
-        with c.ApiServer(settings) as api, api.client(secret) as http, workers:
+        with (
+            c.CpuHog(c.hog_processes(quick)),
+            c.ApiServer(settings) as api,
+            api.client(secret) as http,
+            api.client(secret) as http2,
+            c.ResultPoller(http2) as poller,
+            workers,
+        ):
             sid = http.post("/v1/sequences", json={"path": str(seq)}).json()["id"]
             # two clean jobs (the first prepares the sequence, later ones reuse that):
             # how long a job runs here, from its start to its end
@@ -61,6 +70,7 @@ def run(
             while len(records) < n and missed < 2 * n:
                 kind = "worker" if (i % 4 == 3 or (quick and i == n - 1)) else "child"
                 jid = http.post("/v1/jobs", json=c.job_spec(sid)).json()["id"]
+                poller.watched.append(jid)
                 c.wait_for(
                     lambda jid=jid: c.job_rows(settings, [jid])[jid].state.value != "QUEUED",
                     60,
@@ -122,6 +132,8 @@ def run(
         "deliveries_max": max((r["deliveries"] for r in records), default=0),
         "recovery_s_max": max((r["recovery_s"] for r in records), default=0),
         "worker_process_deaths_logged": deaths,
+        "cpu_hog_processes": c.hog_processes(quick),
+        **poller.figures(),
         "lost": [{k: r[k] for k in ("job", "kill", "stage_hit", "state", "error")} for r in lost],
         "records": records,
     }
@@ -132,6 +144,7 @@ def ok(f: dict[str, Any]) -> bool:
         f["jobs_lost"] == 0
         and f["kills"] == f["kills_asked"]
         and f["jobs_with_exactly_one_archive"] == f["kills"]
+        and f["api_archive_before_success"] == 0
     )
 
 

@@ -5,7 +5,8 @@ Redis + PostgreSQL. For each job, the S3 server is stopped when the job reaches 
 ``package`` or ``publish`` stage and started again ``outage`` seconds later. The
 worker's store calls retry with exponential backoff (osdar_platform/retry.py; every retry
 is a ``store_retry`` job event). Meanwhile a watcher reads the API and, whenever S3 is
-up, every archive object in the bucket, and checks each is a complete tar.gz.
+up, every archive object in the bucket, and checks each is a complete tar.gz; busy-looping
+processes load the machine (one in the reduced form, one per core in full).
 Figures: jobs lost, retries and their delays, archives per job, partial archives seen.
 """
 
@@ -118,9 +119,9 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
                 done: set[str] = set()
                 while not stop.is_set():
                     for jid in list(watched):
-                        try:
-                            r = http.get(f"/v1/jobs/{jid}")
+                        try:  # the archive, then the state (see common.ResultPoller)
                             a = http.get(f"/v1/jobs/{jid}/archive", headers={"Range": "bytes=0-1"})
+                            r = http.get(f"/v1/jobs/{jid}")
                         except httpx.TransportError:  # a keep-alive connection closed by the server
                             seen["api_transport_errors"] += 1
                             continue
@@ -143,6 +144,7 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
             workers = c.Workers(settings, workdir / "worker.log", concurrency=1)
             records = []
             with (
+                c.CpuHog(c.hog_processes(quick)),
                 c.ApiServer(settings) as api,
                 api.client(secret) as http,
                 api.client(secret) as http2,
@@ -202,6 +204,7 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
         "archive_objects_checked": seen["checked"],
         "partial_archives_visible": seen["partial"],
         "api_archive_before_success": seen["api_archive_early"],
+        "cpu_hog_processes": c.hog_processes(quick),
         "api_5xx": seen["api_5xx"],
         "api_transport_errors_of_the_watcher": seen["api_transport_errors"],
         "records": records,

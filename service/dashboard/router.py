@@ -286,7 +286,7 @@ def job_preview(
         key = svc_jobs.preview_key(session=session, owner=user.key, job_id=job_id, index=index)
         media = "image/jpeg" if key.endswith((".jpg", ".jpeg")) else "image/png"
         response = stream_object(store, key, range_header=None, media_type=media)
-    except NotFound:
+    except (NotFound, Conflict):  # no such preview, or the job has not SUCCEEDED
         return not_found(request, user, "preview", f"{job_id}/{index}")
     response.headers["Cache-Control"] = "private, max-age=3600"
     response.headers["X-Content-Type-Options"] = "nosniff"

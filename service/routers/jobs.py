@@ -161,8 +161,8 @@ def job_metrics(job_id: JobId, key: CurrentKey, session: SessionDep) -> dict[str
 @router.get(
     "/{job_id}/previews",
     response_model=list[str],
-    responses=NOT_FOUND,
-    summary="URLs of the job's preview images",
+    responses={**NOT_FOUND, **CONFLICT},
+    summary="URLs of the job's preview images (once it SUCCEEDED)",
 )
 def job_previews(job_id: JobId, key: CurrentKey, session: SessionDep) -> list[str]:
     keys = svc.preview_keys(session=session, owner=key, job_id=job_id)
@@ -173,7 +173,7 @@ def job_previews(job_id: JobId, key: CurrentKey, session: SessionDep) -> list[st
     "/{job_id}/previews/{index}",
     response_model=None,
     response_class=Response,
-    responses={**download_responses("image/png"), **NOT_FOUND},
+    responses={**download_responses("image/png"), **NOT_FOUND, **CONFLICT},
     summary="One preview image",
 )
 def job_preview(

@@ -48,7 +48,7 @@ def job_status(job: Job) -> dict[str, Any]:
         "total": job.progress_total,
         "percent": round(percent(job), 1),
         "error": job.error,
-        "has_result": job.result_key is not None,
+        "has_result": job.state.value == "SUCCEEDED" and job.result_key is not None,
         "updated_at": _iso(job.updated_at),
     }
 

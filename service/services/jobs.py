@@ -251,23 +251,35 @@ def list_events(*, session: Session, owner: ApiKey, job_id: str) -> list[JobEven
     )
 
 
-def archive_key(*, session: Session, owner: ApiKey, job_id: str) -> str:
-    """Store key of the published archive; 409 while the job has none."""
+def finished_job(*, session: Session, owner: ApiKey, job_id: str) -> Job:
+    """The job if its results may be served: every result endpoint (archive, metrics,
+    previews) asks here, and only a SUCCEEDED job has results; 409 otherwise (404 for
+    another key's job). SUCCEEDED is set in the same row update that publishes the
+    archive (worker/orchestration/state.publish_result), so a job seen SUCCEEDED has one."""
     job = get_job(session=session, owner=owner, job_id=job_id)
-    if job.result_key is None:
-        raise Conflict(f"job {job_id} is {job.state.value}: no archive published")
+    if job.state != JobState.SUCCEEDED or job.result_key is None:
+        raise Conflict(
+            f"job {job_id} is {job.state.value}: its results are served once it SUCCEEDED"
+        )
+    return job
+
+
+def archive_key(*, session: Session, owner: ApiKey, job_id: str) -> str:
+    """Store key of the published archive (409 unless SUCCEEDED)."""
+    job = finished_job(session=session, owner=owner, job_id=job_id)
+    assert job.result_key is not None  # finished_job checked it
     return job.result_key
 
 
 def job_metrics(*, session: Session, owner: ApiKey, job_id: str) -> dict[str, Any]:
-    job = get_job(session=session, owner=owner, job_id=job_id)
-    if job.metrics is None:
-        raise Conflict(f"job {job_id} is {job.state.value}: no metrics yet")
-    return job.metrics
+    """metrics.json of a SUCCEEDED job (409 otherwise)."""
+    job = finished_job(session=session, owner=owner, job_id=job_id)
+    return job.metrics or {}
 
 
 def preview_keys(*, session: Session, owner: ApiKey, job_id: str) -> list[str]:
-    job = get_job(session=session, owner=owner, job_id=job_id)
+    """Store keys of a SUCCEEDED job's preview images (409 otherwise)."""
+    job = finished_job(session=session, owner=owner, job_id=job_id)
     return [str(k) for k in (job.previews or [])]
 
 
