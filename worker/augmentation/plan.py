@@ -49,7 +49,7 @@ class AugmentError(ValueError):
 # ---------------------------------------------------------------------------- the plan
 @dataclass
 class Plan:
-    """Everything frame-independent of one augmentation (picklable).
+    """Everything frame-independent of one augmentation (stored as a record: records.py).
 
     frames : the frame indices to augment (the spec's range); all_frames : every frame.
     uris : frame -> stream -> uri (relative to the sequence folder).

@@ -11,7 +11,6 @@ import hashlib
 import logging
 import multiprocessing as mp
 import os
-import pickle
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from pathlib import Path
@@ -26,6 +25,7 @@ from geometry.camera import CameraModel
 from osdar_platform.settings import get_settings
 from worker.augmentation.frame import ChunkResult, augment_frames, camera_renderer
 from worker.augmentation.plan import Plan
+from worker.augmentation.records import dump_chunk, dump_plan, load_chunk, read_plan
 
 log = logging.getLogger(__name__)
 
@@ -125,12 +125,15 @@ def start_pool(
 _PLAN_CACHE: dict[str, Plan] = {}
 
 
-def _augment_frames_from_file(plan_file: str, frames: list[int], out_root: str) -> ChunkResult:
+def _augment_frames_from_file(plan_file: str, frames: list[int], out_root: str) -> bytes:
+    """In a pool process: the frames of the plan in ``plan_file``; the chunk's records
+    come back as a record (:mod:`.records`), the plan goes in as one: nothing a process
+    receives is unpickled into code."""
     plan = _PLAN_CACHE.get(plan_file)
     if plan is None:
         _PLAN_CACHE.clear()
-        plan = _PLAN_CACHE[plan_file] = pickle.loads(Path(plan_file).read_bytes())
-    return augment_frames(plan, frames, out_root)
+        plan = _PLAN_CACHE[plan_file] = read_plan(plan_file)
+    return dump_chunk(augment_frames(plan, frames, out_root))
 
 
 def run_frames(
@@ -153,8 +156,8 @@ def run_frames(
             report()
         return chunks
     # The plan goes to the workers once, as a file; each task names it.
-    plan_file = scratch / ".plan.pkl"
-    plan_file.write_bytes(pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL))
+    plan_file = scratch / ".plan.npz"
+    plan_file.write_bytes(dump_plan(plan))
     n_children = pool._max_workers
     futures: set[Future] = set()
     while pending or futures:
@@ -169,6 +172,6 @@ def run_frames(
             timeout = None
         done, futures = wait(futures, timeout=timeout, return_when=FIRST_COMPLETED)
         for fut in done:
-            chunks.append(fut.result())
+            chunks.append(load_chunk(fut.result(), "a pool process's chunk"))
             report()
     return chunks

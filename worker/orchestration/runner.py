@@ -29,7 +29,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import pickle
 import shutil
 import tarfile
 import time
@@ -52,6 +51,13 @@ from worker.augmentation.finish import finish_augmentation
 from worker.augmentation.frame import ChunkResult, augment_frames
 from worker.augmentation.placement import PlacementError
 from worker.augmentation.plan import AugmentError, Plan, plan_augmentation
+from worker.augmentation.records import (
+    RecordFormatError,
+    dump_chunk,
+    dump_plan,
+    load_chunk,
+    read_plan,
+)
 from worker.augmentation.spec import AugmentSpec
 from worker.evaluation.evaluate import evaluate_sequence, plot_rpe_jitter
 from worker.orchestration import state
@@ -176,7 +182,7 @@ def describe_error(stage: str, exc: BaseException) -> str:
         UnsafeArchive,
         StoreError,
     )
-    user_errors += (PreparationError, ClicksError, AugmentError, PlacementError)
+    user_errors += (PreparationError, ClicksError, AugmentError, PlacementError, RecordFormatError)
     if isinstance(exc, user_errors):
         return f"{stage}: {exc}"
     return f"{stage}: internal error ({name}: {exc})"
@@ -418,8 +424,8 @@ def _plan(run: JobRun) -> Plan:
     Every chunk needs it; the first worker to need it computes and uploads it (a race
     only computes the same plan twice), the others download it.
     """
-    local = run.workdir / "plan.pkl"
-    key = f"{run.prefix}plan.pkl"
+    local = run.workdir / "plan.npz"
+    key = f"{run.prefix}plan.npz"
     if not local.is_file():
         local.parent.mkdir(parents=True, exist_ok=True)
         # Chunk tasks of one job run concurrently on one machine: every temporary file is
@@ -433,13 +439,11 @@ def _plan(run: JobRun) -> Plan:
             plan = plan_augmentation(_local_sequence(run), _augment_spec(run), prepared)
             if prepared.calibration is not None:
                 plan.info["calibration"] = prepared.calibration.summary()
-            tmp.write_bytes(pickle.dumps(plan, protocol=pickle.HIGHEST_PROTOCOL))
+            tmp.write_bytes(dump_plan(plan))
             run.store.put_file(key, tmp)
             tmp.replace(local)
             return plan
-    # Our own workers wrote it into our own store under this attempt's key.
-    cached: Plan = pickle.loads(local.read_bytes())
-    return cached
+    return read_plan(local)  # a typed record, validated as it is read
 
 
 def _chunk_dir(run: JobRun, index: int) -> Path:
@@ -482,13 +486,14 @@ def augment_chunk(
                 result.seconds += part.seconds
             state.add_progress(run.job_id, run.attempt, 1, settings=run.settings)
         files_key = f"{run.prefix}chunks/{index:04d}.tar"
-        records_key = f"{run.prefix}chunks/{index:04d}.pkl"
+        records_key = f"{run.prefix}chunks/{index:04d}.npz"
         tar_path = out.with_suffix(".tar")
         with tarfile.open(tar_path, "w") as tar:
             tar.add(out, arcname=".")
         run.store.put_file(files_key, tar_path)
         tar_path.unlink(missing_ok=True)
-        run.store.put_bytes(records_key, pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL))
+        assert result is not None  # a chunk has at least one frame
+        run.store.put_bytes(records_key, dump_chunk(result))
         _chunk_done(run, index).write_text("ok")
         return {"index": index, "frames": list(frames), "files": files_key, "records": records_key}
 
@@ -511,7 +516,7 @@ def _chunk_results(run: JobRun, chunks: list[dict[str, Any]]) -> list[ChunkResul
             run.store.get_file(c["files"], tar_path)
             extract_archive(tar_path, folder, ArchiveLimits.from_settings(run.settings))
             tar_path.unlink(missing_ok=True)
-        result = pickle.loads(b"".join(run.store.open_read(c["records"])))
+        result = load_chunk(b"".join(run.store.open_read(c["records"])), c["records"])
         result.root = str(folder)
         out.append(result)
     return out
