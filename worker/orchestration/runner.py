@@ -366,7 +366,7 @@ def _prepare(run: JobRun, progress: Any = None) -> PreparedSequence:
         _local_sequence(run),
         config,
         clicks=clicks,
-        cache_dir=Path(run.settings.cache_dir) / "prepared",
+        cache_dir=run.settings.prepared_cache_dir,
         progress=progress,
     )
 
@@ -619,7 +619,7 @@ def _report(run: JobRun, metrics: dict[str, Any]) -> dict[str, Path]:
     cameras = list(run.spec.get("cameras") or [])
     for p in make_previews(out, cameras, report / "previews", lidar=bool(run.spec.get("lidar"))):
         files[f"report/previews/{p.name}"] = p
-    prep_summary = Path(run.settings.cache_dir) / "prepared"
+    prep_summary = run.settings.prepared_cache_dir
     key = (metrics.get("preparation") or {}).get("key")
     if key and (prep_summary / key / "summary.json").is_file():
         files["report/preparation.json"] = prep_summary / key / "summary.json"
