@@ -452,7 +452,7 @@ def test_records_refuse_other_versions_formats_types_and_pickle(truth_run, tmp_p
 
     from worker.augmentation import records as rec
 
-    plan, chunk, _, _ = truth_run
+    _, chunk, _, _ = truth_run
 
     def tampered(data: bytes, edit) -> bytes:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
@@ -467,7 +467,7 @@ def test_records_refuse_other_versions_formats_types_and_pickle(truth_run, tmp_p
     data = rec.dump_chunk(chunk)
     with pytest.raises(rec.RecordFormatError, match="version 99; this worker reads"):
         rec.load_chunk(tampered(data, lambda h: h.update(version=99)), "chunks/0000.npz")
-    with pytest.raises(rec.RecordFormatError, match="expected 'osdar-ar.plan'"):
+    with pytest.raises(rec.RecordFormatError, match=r"expected 'osdar-ar\.plan'"):
         rec.load_plan(data)
     with pytest.raises(rec.RecordFormatError, match="not a record type"):
         rec.load_chunk(tampered(data, lambda h: h["tree"].update(dataclass="Popen")))
