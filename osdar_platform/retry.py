@@ -1,17 +1,23 @@
-"""Bounded retries with exponential backoff for the object store (no dependency).
+"""The one retry layer of the object store: bounded retries with exponential backoff.
 
 A store that fails for a while (S3 endpoint restarting, network blip) must not fail the
 job: every store call a job makes goes through :class:`RetryingStore`, which retries a
 :class:`~osdar_platform.store.StoreError` (the store's "unreachable or refused") up to
 ``retries`` times, sleeping ``base * 2**i`` seconds (capped at ``cap``, with +-25 %
-jitter so that many workers do not retry in step). :class:`~osdar_platform.store.ObjectNotFound`
-and bad keys are answers, not failures: never retried. Writes are atomic in both stores,
+jitter so that many workers do not retry in step), within a total time ``budget_s`` from
+the first try. botocore makes one attempt per call (osdar_platform/store.py): retries on
+top of its own (5 each) made one call up to 35 tries and an outage took minutes to
+surface. Past the budget the call raises :class:`StoreUnavailable`, whose message says
+how long the store was away against which budget, and the job fails with it.
+:class:`~osdar_platform.store.ObjectNotFound` and bad keys are answers, not failures:
+never retried. Writes are atomic in both stores,
 so a retried upload never leaves a partial object visible.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import random
 import time
 from collections.abc import Callable, Iterator
@@ -32,6 +38,10 @@ def backoff_delays(retries: int, base: float, cap: float) -> list[float]:
     return [min(cap, base * 2**i) for i in range(retries)]
 
 
+class StoreUnavailable(StoreError):
+    """The store stayed unavailable past the retry budget (attempts or time)."""
+
+
 def call_with_retries(
     fn: Callable[[], T],
     *,
@@ -40,27 +50,38 @@ def call_with_retries(
     retries: int,
     base: float,
     cap: float,
+    budget_s: float = math.inf,
     on_retry: RetryHook | None = None,
     retry_on: tuple[type[BaseException], ...] = (StoreError,),
     sleep: Callable[[float], None] | None = None,
+    clock: Callable[[], float] = time.monotonic,
 ) -> T:
-    """``fn()``; on ``retry_on`` errors up to ``retries`` more tries with backoff."""
+    """``fn()``; on ``retry_on`` errors up to ``retries`` more tries with backoff, as long
+    as the next try starts within ``budget_s`` of the first; then
+    :class:`StoreUnavailable` (from the last error)."""
     delays = backoff_delays(retries, base, cap)
+    started = clock()
     for i in range(retries + 1):
         try:
             return fn()
         except retry_on as exc:
-            if i >= retries:
-                raise
-            delay = delays[i] * random.uniform(0.75, 1.25)
+            elapsed = clock() - started
+            delay = delays[i] * random.uniform(0.75, 1.25) if i < retries else 0.0
+            if i >= retries or elapsed + delay > budget_s:
+                raise StoreUnavailable(
+                    f"object store unavailable for {elapsed:.0f} s (budget {budget_s:g} s, "
+                    f"{retries + 1} attempts; {i + 1} made) on {what} {key}: {exc}"
+                ) from exc
             log.warning(
-                "store %s %s failed (%s); retry %d/%d in %.1fs",
+                "store %s %s failed (%s); retry %d/%d in %.1fs (%.0f s of the %g s budget left)",
                 what,
                 key,
                 exc,
                 i + 1,
                 retries,
                 delay,
+                budget_s - elapsed,
+                budget_s,
             )
             if on_retry is not None:
                 try:
@@ -81,12 +102,14 @@ class RetryingStore:
         retries: int,
         base: float,
         cap: float,
+        budget_s: float = math.inf,
         on_retry: RetryHook | None = None,
     ) -> None:
         self.inner = inner
         self.retries = retries
         self.base = base
         self.cap = cap
+        self.budget_s = budget_s
         self.on_retry = on_retry
 
     def __repr__(self) -> str:
@@ -100,6 +123,7 @@ class RetryingStore:
             retries=self.retries,
             base=self.base,
             cap=self.cap,
+            budget_s=self.budget_s,
             on_retry=self.on_retry,
         )
 
@@ -132,4 +156,4 @@ class RetryingStore:
         return getattr(self.inner, name)
 
 
-__all__ = ["RetryingStore", "backoff_delays", "call_with_retries"]
+__all__ = ["RetryingStore", "StoreUnavailable", "backoff_delays", "call_with_retries"]

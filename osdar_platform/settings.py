@@ -99,11 +99,14 @@ class Settings(BaseSettings):
     worker_max_memory_per_child_kib: int = Field(8 * 1024 * 1024, gt=0)  # recycle above
     #: Frames per augmentation chunk (one chord member; chunks run on several workers).
     frames_per_chunk: int = Field(25, gt=0)
-    #: Store calls of a job retried on StoreError: attempts after the first, with
-    #: exponential backoff from ``store_retry_base_s`` capped at ``store_retry_max_s``.
+    #: Store calls of a job retried on StoreError (osdar_platform/retry.py, the only retry
+    #: layer): attempts after the first (default 6), with exponential backoff from
+    #: ``store_retry_base_s`` (0.5 s) capped at ``store_retry_max_s`` (30 s), all within
+    #: ``store_retry_budget_s`` (120 s) of the first try; past it the job fails saying so.
     store_retries: int = Field(6, ge=0)
     store_retry_base_s: float = Field(0.5, gt=0)
     store_retry_max_s: float = Field(30.0, gt=0)
+    store_retry_budget_s: float = Field(120.0, gt=0)
     #: The reaper (worker/orchestration/reaper.py), run by every worker at start and then every
     #: ``reaper_interval_s`` (0: never). A RUNNING job without a heartbeat (row update) for
     #: ``reaper_stale_after_s`` (None: task_time_limit_s + visibility_margin_s) is re-queued

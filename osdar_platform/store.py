@@ -182,7 +182,8 @@ class S3Store:
             aws_access_key_id=access_key_id,
             aws_secret_access_key=secret_access_key,
             config=Config(
-                retries={"max_attempts": 5, "mode": "standard"},
+                # one attempt per call: the retries are osdar_platform/retry.py's alone
+                retries={"total_max_attempts": 1, "mode": "standard"},
                 s3={"addressing_style": "path"},
                 connect_timeout=5,
                 read_timeout=60,

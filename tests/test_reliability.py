@@ -126,6 +126,50 @@ def test_store_calls_retry_with_exponential_backoff(monkeypatch: pytest.MonkeyPa
     assert flaky.calls == 1
 
 
+def test_an_outage_past_the_retry_budget_fails_saying_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The budget bounds the time as well as the attempts: with 10 retries allowed but a
+    20 s budget, a store away for good is given up after the tries that fit, and the
+    error says how long, against which budget; one that comes back within it is fine."""
+    from osdar_platform import retry
+    from osdar_platform.store import StoreError
+
+    now = [0.0]
+
+    def sleep(s: float) -> None:
+        now[0] += s
+
+    kw = dict(what="put_bytes", key="k", retries=10, base=1.0, cap=8.0, budget_s=20.0)
+    calls = []
+
+    def down() -> None:
+        calls.append(now[0])
+        raise StoreError("connection refused")
+
+    with pytest.raises(retry.StoreUnavailable, match=r"unavailable for 1\d s \(budget 20 s") as e:
+        retry.call_with_retries(down, sleep=sleep, clock=lambda: now[0], **kw)
+    assert isinstance(e.value, StoreError) and "connection refused" in str(e.value)
+    assert 3 <= len(calls) <= 5 and calls[-1] <= 20.0  # 0, ~1, ~3, ~7, ~15 s: none past 20
+    back = iter([StoreError("refused")] * 3 + [None])
+
+    def flaky() -> str:
+        err = next(back)
+        if err is not None:
+            raise err
+        return "ok"
+
+    assert retry.call_with_retries(flaky, sleep=sleep, clock=lambda: now[0], **kw) == "ok"
+
+
+def test_a_failed_store_call_reads_as_such_in_the_job_error() -> None:
+    from osdar_platform.retry import StoreUnavailable
+    from worker.orchestration.runner import describe_error
+
+    msg = describe_error(
+        "publish", StoreUnavailable("object store unavailable for 121 s (budget 120 s")
+    )
+    assert msg.startswith("publish: object store unavailable for 121 s") and "internal" not in msg
+
+
 # ---------------------------------------------------------------------------- reaper
 def test_reaper_requeues_a_stale_running_job_and_fails_it_at_the_delivery_bound(
     tmp_path: Path,

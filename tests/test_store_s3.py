@@ -129,9 +129,15 @@ def test_unreachable_s3_is_a_store_error(tmp_path: Path) -> None:
 
     settings = _s3_settings(f"http://127.0.0.1:{_free_port()}", "x")
     store = store_from_url(str(settings.store_url), settings)
-    store.client.meta.config.retries = {"max_attempts": 1}  # type: ignore[attr-defined]
+    # botocore makes one attempt: the retries are osdar_platform/retry.py's alone
+    assert store.client.meta.config.retries["total_max_attempts"] == 1  # type: ignore[attr-defined]
+    calls = []
+    store.client.meta.events.register(  # type: ignore[attr-defined]
+        "before-send.s3.*", lambda **kw: calls.append(kw["request"].url)
+    )
     with pytest.raises(StoreError):
         store.put_bytes("a", b"b")
+    assert len(calls) == 1, calls
 
 
 def test_store_url_schemes(tmp_path: Path) -> None:

@@ -104,6 +104,7 @@ class JobRun:
                 retries=s.store_retries,
                 base=s.store_retry_base_s,
                 cap=s.store_retry_max_s,
+                budget_s=s.store_retry_budget_s,
                 on_retry=self._store_retry,
             )
         return self._store
