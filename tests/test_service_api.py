@@ -641,3 +641,19 @@ def test_results_are_served_only_once_the_job_succeeded(api: Api) -> None:
         s.execute(update(Job).where(Job.id == job["id"]).values(state=JobState.SUCCEEDED))
     assert api.client.get(f"/v1/jobs/{job['id']}/archive", headers=api.h()).content == b"tar bytes"
     assert api.client.get(f"/v1/jobs/{job['id']}/previews", headers=api.h()).json()
+
+
+def test_405_allow_names_every_method_of_the_path(api: Api) -> None:
+    """A 405 lists exactly the methods the path is served with, across routes: PUT
+    /v1/jobs allows GET and POST (two routes); /v1/sequences/upload is POST only, not a
+    sequence named "upload"."""
+    cases = {
+        ("PUT", "/v1/jobs"): "GET, POST",
+        ("PATCH", "/v1/assets/abc"): "DELETE, GET",
+        ("GET", "/v1/sequences/upload"): "POST",
+        ("DELETE", "/v1/sequences/upload"): "POST",
+        ("POST", "/v1/health"): "GET",
+    }
+    for (method, path), allow in cases.items():
+        r = api.client.request(method, path, headers=api.h())
+        assert r.status_code == 405 and r.headers["allow"] == allow, (method, path, r.headers)

@@ -11,6 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 from service.deps import CurrentKey, SessionDep, SettingsDep, StoreDep
 from service.routers.common import (
     AUTH_ERRORS,
+    BAD_REQUEST,
     CONFLICT,
     INVALID,
     NOT_FOUND,
@@ -31,7 +32,7 @@ router = APIRouter(prefix="/assets", tags=["assets"], responses=AUTH_ERRORS)
     "",
     response_model=AssetPublic,
     status_code=status.HTTP_201_CREATED,
-    responses={**INVALID, **TOO_LARGE},
+    responses={**INVALID, **TOO_LARGE, **BAD_REQUEST},
     summary="Upload a mesh (raw body; its type given explicitly)",
     openapi_extra=binary_body(
         ["application/octet-stream", "model/gltf-binary", "model/gltf+json", "model/obj"],

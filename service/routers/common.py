@@ -22,6 +22,9 @@ INVALID: dict[int | str, dict[str, Any]] = {
     422: {"model": ValidationProblem, "description": "What is wrong, and where"}
 }
 CONFLICT: dict[int | str, dict[str, Any]] = {409: {"model": Problem, "description": "Conflict"}}
+BAD_REQUEST: dict[int | str, dict[str, Any]] = {
+    400: {"model": Problem, "description": "A body that cannot be read (empty, not JSON)"}
+}
 TOO_LARGE: dict[int | str, dict[str, Any]] = {
     413: {"model": Problem, "description": "Body over the size limit"}
 }

@@ -9,7 +9,15 @@ from fastapi import APIRouter, Header, Path, Query, Response, status
 from osdar_platform.models import JobState
 from service.deps import CurrentKey, DispatcherDep, SessionDep, SettingsDep, StoreDep
 from service.downloads import download_responses, stream_object
-from service.routers.common import AUTH_ERRORS, CONFLICT, INVALID, NOT_FOUND, Limit, Offset
+from service.routers.common import (
+    AUTH_ERRORS,
+    BAD_REQUEST,
+    CONFLICT,
+    INVALID,
+    NOT_FOUND,
+    Limit,
+    Offset,
+)
 from service.schemas import JobCreate, JobEventPublic, JobPublic, Page
 from service.services import jobs as svc
 
@@ -38,6 +46,7 @@ JobId = Annotated[str, Path(max_length=64)]
         **NOT_FOUND,
         **INVALID,
         **CONFLICT,
+        **BAD_REQUEST,
     },
     summary="Submit a job (checked against its sequence now, not an hour later)",
 )

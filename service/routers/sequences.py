@@ -7,10 +7,12 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, status
 from fastapi.concurrency import run_in_threadpool
+from starlette.convertors import Convertor, register_url_convertor
 
 from service.deps import CurrentKey, SessionDep, SettingsDep, StoreDep
 from service.routers.common import (
     AUTH_ERRORS,
+    BAD_REQUEST,
     CONFLICT,
     INVALID,
     NOT_FOUND,
@@ -24,6 +26,23 @@ from service.schemas import Name, Page, SequencePublic, SequenceRegister
 from service.services import sequences as svc
 from service.services.uploads import receive_upload
 
+
+class SequenceIdConvertor(Convertor[str]):
+    """A sequence id in a path: any segment but ``upload``, so that GET and DELETE of
+    ``/v1/sequences/upload`` are not served as a sequence named "upload" (its only
+    method is POST, and a 405 says so)."""
+
+    regex = "(?!upload$)[^/]+"
+
+    def convert(self, value: str) -> str:
+        return value
+
+    def to_string(self, value: str) -> str:
+        return value
+
+
+register_url_convertor("sequence_id", SequenceIdConvertor())
+
 router = APIRouter(prefix="/sequences", tags=["sequences"], responses=AUTH_ERRORS)
 
 
@@ -31,7 +50,7 @@ router = APIRouter(prefix="/sequences", tags=["sequences"], responses=AUTH_ERROR
     "",
     response_model=SequencePublic,
     status_code=status.HTTP_201_CREATED,
-    responses=INVALID,
+    responses={**INVALID, **BAD_REQUEST},
     summary="Register a sequence folder the workers can read",
 )
 def register_sequence(
@@ -47,7 +66,7 @@ def register_sequence(
     "/upload",
     response_model=SequencePublic,
     status_code=status.HTTP_201_CREATED,
-    responses={**INVALID, **TOO_LARGE},
+    responses={**INVALID, **TOO_LARGE, **BAD_REQUEST},
     summary="Upload an OSDaR23 sequence as a tar or zip archive (raw body, streamed)",
     openapi_extra=binary_body(
         ["application/x-tar", "application/zip", "application/gzip", "application/octet-stream"],
@@ -95,7 +114,7 @@ def list_sequences(
 
 
 @router.get(
-    "/{sequence_id}",
+    "/{sequence_id:sequence_id}",
     response_model=SequencePublic,
     responses=NOT_FOUND,
     summary="Frames, cameras, time span and validation result of a sequence",
@@ -106,7 +125,7 @@ def get_sequence(sequence_id: str, key: CurrentKey, session: SessionDep) -> Sequ
 
 
 @router.delete(
-    "/{sequence_id}",
+    "/{sequence_id:sequence_id}",
     status_code=status.HTTP_204_NO_CONTENT,
     response_model=None,
     responses={**NOT_FOUND, **CONFLICT},
