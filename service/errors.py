@@ -14,6 +14,7 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import DisconnectionError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
@@ -91,6 +92,9 @@ def _plain_errors(errors: Any) -> list[dict[str, Any]]:
     return out
 
 
+#: Retry-After (s) of a 503 while the database is away (a restart takes seconds).
+DATABASE_RETRY_AFTER_S = 5
+
 #: The methods a 405's Allow header may name.
 HTTP_METHODS = ("DELETE", "GET", "HEAD", "OPTIONS", "PATCH", "POST", "PUT")
 
@@ -119,6 +123,18 @@ def install_handlers(app: FastAPI) -> None:
             # a path served by several routes (GET and POST /v1/jobs) allows them all.
             headers["Allow"] = ", ".join(allowed_methods(request.app, request.scope))
         return JSONResponse({"detail": exc.detail}, status_code=exc.status_code, headers=headers)
+
+    @app.exception_handler(OperationalError)
+    @app.exception_handler(DisconnectionError)
+    async def _database_away(request: Request, exc: Exception) -> JSONResponse:
+        # The database restarting or unreachable: the request was fine, try again shortly
+        # (never a 500; nothing was half-done: every write is one transaction).
+        log.warning("database unavailable on %s %s: %s", request.method, request.url.path, exc)
+        return JSONResponse(
+            {"detail": "the database is unavailable; retry shortly"},
+            status_code=503,
+            headers={"Retry-After": str(DATABASE_RETRY_AFTER_S)},
+        )
 
     @app.exception_handler(ServiceError)
     async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:

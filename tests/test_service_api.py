@@ -657,3 +657,27 @@ def test_405_allow_names_every_method_of_the_path(api: Api) -> None:
     for (method, path), allow in cases.items():
         r = api.client.request(method, path, headers=api.h())
         assert r.status_code == 405 and r.headers["allow"] == allow, (method, path, r.headers)
+
+
+def test_the_database_away_is_503_with_retry_after_never_500(tmp_path: Path) -> None:
+    """PostgreSQL restarting (here: nothing listening): every route that needs the
+    database answers 503 with Retry-After, health too; none answers 500."""
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from tests.conftest_service import make_settings, memory_celery
+    from worker.orchestration.embedded import free_port
+
+    url = f"postgresql+psycopg://nobody@127.0.0.1:{free_port()}/absent"
+    app = create_app(make_settings(tmp_path, url), celery_app=memory_celery())
+    with TestClient(app) as client:
+        h = {"Authorization": "Bearer osk_not_checked_before_the_database"}
+        for method, path in (
+            ("GET", "/v1/health"),
+            ("GET", "/v1/jobs"),
+            ("GET", "/v1/jobs/abc"),
+            ("POST", "/v1/jobs/abc/cancel"),
+        ):
+            r = client.request(method, path, headers=h)
+            assert r.status_code == 503, (method, path, r.status_code, r.text)
+            assert int(r.headers["retry-after"]) > 0
