@@ -74,7 +74,7 @@ def make_pg_schema(prefix: str = "osdar_test") -> Iterator[PgSchema]:
 
     admin = _admin_pg_url()
     schema = f"{prefix}_{uuid.uuid4().hex[:10]}"
-    engine = create_engine(admin)
+    engine = create_engine(admin, pool_pre_ping=True)  # db_restart restarts the server
     with engine.begin() as conn:
         conn.execute(text(f'CREATE SCHEMA "{schema}"'))
     url = admin.update_query_dict({"options": f"-csearch_path={schema}"})

@@ -307,6 +307,11 @@ def test_redis_restart_mid_job_loses_no_job(tmp_path: Path) -> None:
     assert f["jobs_lost"] == 0
 
 
+def test_postgres_restart_mid_job_loses_no_job_and_answers_503(tmp_path: Path) -> None:
+    f = _scenario("db_restart", tmp_path)
+    assert f["jobs_lost"] == 0 and f["api_answers_while_down"].get("503", 0) > 0
+
+
 def test_schemathesis_finds_no_server_error_and_no_auth_bypass(tmp_path: Path) -> None:
     f = _scenario("schemathesis_run", tmp_path)
     assert f["requests_answered"] > 100
@@ -326,6 +331,7 @@ FULL = [
     "kill_workers",
     "store_outage",
     "redis_restart",
+    "db_restart",
     "schemathesis_run",
     "load_poll",
 ]

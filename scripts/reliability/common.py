@@ -104,7 +104,7 @@ def pg_database(prefix: str = "osdar_rel") -> Iterator[str]:
 
     admin = pg_admin_url()
     schema = f"{prefix}_{uuid.uuid4().hex[:10]}"
-    engine = create_engine(admin)
+    engine = create_engine(admin, pool_pre_ping=True)  # db_restart restarts the server
     with engine.begin() as conn:
         conn.execute(text(f'CREATE SCHEMA "{schema}"'))
     url = admin.update_query_dict({"options": f"-csearch_path={schema}"})
@@ -156,6 +156,32 @@ def redis_start() -> None:
     if not redis_up():
         subprocess.run(REDIS_START, capture_output=True, timeout=20, check=False)
     wait_for(redis_up, 20, "Redis to start")
+
+
+def _pg_cluster() -> list[str]:
+    version = sorted(os.listdir("/etc/postgresql"))[-1]
+    return ["pg_ctlcluster", "--skip-systemctl-redirect", version, "main"]
+
+
+def pg_up() -> bool:
+    try:
+        pg_admin_url()
+        return True
+    except Unavailable:
+        return False
+
+
+def pg_stop() -> None:
+    """Stop the machine's PostgreSQL (fast shutdown: sessions are cut, as in a crash of
+    the clients' view)."""
+    subprocess.run([*_pg_cluster(), "stop", "-m", "fast"], capture_output=True, timeout=60)
+    wait_for(lambda: not pg_up(), 30, "PostgreSQL to stop")
+
+
+def pg_start() -> None:
+    if not pg_up():
+        subprocess.run([*_pg_cluster(), "start"], capture_output=True, timeout=60, check=False)
+    wait_for(pg_up, 60, "PostgreSQL to start")
 
 
 # ---------------------------------------------------------------------------- helpers
