@@ -9,6 +9,7 @@ Anything else becomes a plain 500 without a stack trace (logged on the server).
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -99,7 +100,7 @@ DATABASE_RETRY_AFTER_S = 5
 HTTP_METHODS = ("DELETE", "GET", "HEAD", "OPTIONS", "PATCH", "POST", "PUT")
 
 
-def allowed_methods(app: FastAPI, scope: dict[str, Any]) -> list[str]:
+def allowed_methods(app: FastAPI, scope: Mapping[str, Any]) -> list[str]:
     """Every method some route of ``app`` fully matches the request's path with (the
     routers' own matching, nested routers included), sorted."""
     out = []
