@@ -4,7 +4,7 @@ Every scenario (one script each, ``python -m scripts.reliability.<name> [--quick
 runs against the servers of this machine on loopback: PostgreSQL (a fresh schema in the
 ``test`` database, dropped afterwards), Redis (database 12, flushed), prefork
 ``celery worker`` subprocesses, and the API under uvicorn in a thread. Each returns a dict
-of figures (printed as a table and one JSON line) that ``tests/test_reliability.py``
+of figures (printed as a table and one JSON line) that ``tests/orchestration/test_reliability.py``
 asserts on in the reduced (``quick``) form.
 """
 

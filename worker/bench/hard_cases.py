@@ -5,11 +5,11 @@ Every case is a function ``case_N(ctx) -> dict`` with the keys ``case``, ``title
 ``degrades`` (what degrades), ``warning`` (the warning given, "-" when none is due),
 ``error``, ``bound``, ``unit``, ``ok`` (finite, warned where due, error <= bound) and
 ``tests`` (the existing tests covering the case, by node id). :func:`run_hard_cases` runs
-them all (``osdar-ar bench --hard``); ``tests/test_hard_cases.py`` asserts each one.
+them all (``osdar-ar bench --hard``); ``tests/bench/test_hard_cases.py`` asserts each one.
 
 Sequence cases use small synthetic sequences (``reduced``: 20 frames, else 60; scale 0.05,
 lidar density 0.3) and the localization strategies with the TRUE ego centreline as the
-rails (as tests/test_localization.py; the benchmark may read ground truth, the pipeline
+rails (as tests/preparation/test_localization.py; the benchmark may read ground truth, the pipeline
 never does). Render cases use the real OSDaR23 calibration and need EGL (llvmpipe is
 enough); without it they report ``skipped``.
 """
@@ -53,54 +53,57 @@ REAL_LABELS = real_labels_path()
 #: The existing tests that cover each case (collected by case; not duplicated here).
 EXISTING_TESTS: dict[int, list[str]] = {
     1: [
-        "tests/test_object_render.py::test_far_origin_adds_no_error",
-        "tests/test_augment.py::test_far_origin_sequence",
+        "tests/renderer/test_object_render.py::test_far_origin_adds_no_error",
+        "tests/augmentation/test_augment.py::test_far_origin_sequence",
     ],
     2: [
-        "tests/test_localization.py::test_standstill_detected",
-        "tests/test_rails.py::test_standing_train",
+        "tests/preparation/test_localization.py::test_standstill_detected",
+        "tests/preparation/test_rails.py::test_standing_train",
     ],
-    3: ["tests/test_localization.py::test_degenerate_straight_detected_and_not_picked"],
-    4: ["tests/test_rails.py::test_tight_curve_cant"],
+    3: ["tests/preparation/test_localization.py::test_degenerate_straight_detected_and_not_picked"],
+    4: ["tests/preparation/test_rails.py::test_tight_curve_cant"],
     5: [
-        "tests/test_rails.py::test_switch_ego_does_not_jump",
-        "tests/test_rails.py::test_parallel_tracks_found",
+        "tests/preparation/test_rails.py::test_switch_ego_does_not_jump",
+        "tests/preparation/test_rails.py::test_parallel_tracks_found",
     ],
     6: [
-        "tests/test_localization.py::test_jump_and_dropout_detected",
-        "tests/test_localization.py::test_fused_best_on_gnss_jump",
-        "tests/test_osdar_sequence.py::test_dropped_frame_works_with_warning",
-        "tests/test_osdar_sequence.py::test_missing_ins_row_and_folder",
+        "tests/preparation/test_localization.py::test_jump_and_dropout_detected",
+        "tests/preparation/test_localization.py::test_fused_best_on_gnss_jump",
+        "tests/osdar/test_osdar_sequence.py::test_dropped_frame_works_with_warning",
+        "tests/osdar/test_osdar_sequence.py::test_missing_ins_row_and_folder",
     ],
     7: [
-        "tests/test_object_render.py::test_partly_outside_behind_and_near_plane",
-        "tests/test_augment.py::test_object_passing_the_camera",
-        "tests/test_camera.py::test_points_behind_or_at_the_camera_are_flagged",
+        "tests/renderer/test_object_render.py::test_partly_outside_behind_and_near_plane",
+        "tests/augmentation/test_augment.py::test_object_passing_the_camera",
+        "tests/geometry/test_camera.py::test_points_behind_or_at_the_camera_are_flagged",
     ],
     8: [
-        "tests/test_camera.py::test_pixel_round_trip_everywhere_including_corners",
-        "tests/test_camera.py::test_real_highres_right_has_no_fold_in_the_image",
-        "tests/test_camera.py::test_folding_lens_flags_beyond_valid_radius",
-        "tests/test_camera.py::test_folding_lens_render_map_has_no_folded_pixels",
-        "tests/test_object_render.py::test_k3_2_48_image_corner",
+        "tests/geometry/test_camera.py::test_pixel_round_trip_everywhere_including_corners",
+        "tests/geometry/test_camera.py::test_real_highres_right_has_no_fold_in_the_image",
+        "tests/geometry/test_camera.py::test_folding_lens_flags_beyond_valid_radius",
+        "tests/geometry/test_camera.py::test_folding_lens_render_map_has_no_folded_pixels",
+        "tests/renderer/test_object_render.py::test_k3_2_48_image_corner",
     ],
     9: [
-        "tests/test_camera.py::test_openlabel_quaternion_is_normalised",
-        "tests/test_osdar_labels.py::test_poses",
+        "tests/geometry/test_camera.py::test_openlabel_quaternion_is_normalised",
+        "tests/osdar/test_osdar_labels.py::test_poses",
     ],
     10: [
-        "tests/test_localization.py::test_sparse_and_nan_clouds",
-        "tests/test_localization.py::test_no_rails_falls_back",
-        "tests/test_rails.py::test_no_rails_warns",
-        "tests/test_rails.py::test_nan_and_sparse_clouds",
-        "tests/test_osdar_pcd.py::test_empty_cloud",
+        "tests/preparation/test_localization.py::test_sparse_and_nan_clouds",
+        "tests/preparation/test_localization.py::test_no_rails_falls_back",
+        "tests/preparation/test_rails.py::test_no_rails_warns",
+        "tests/preparation/test_rails.py::test_nan_and_sparse_clouds",
+        "tests/osdar/test_osdar_pcd.py::test_empty_cloud",
     ],
     11: [
-        "tests/test_object_render.py::test_tiny_and_huge",
-        "tests/test_augment.py::test_tiny_far_object",
-        "tests/test_augment.py::test_huge_near_elephant",
+        "tests/renderer/test_object_render.py::test_tiny_and_huge",
+        "tests/augmentation/test_augment.py::test_tiny_far_object",
+        "tests/augmentation/test_augment.py::test_huge_near_elephant",
     ],
-    12: ["tests/test_camera_sim.py", "tests/test_augment.py::test_object_passing_the_camera"],
+    12: [
+        "tests/synth/test_camera_sim.py",
+        "tests/augmentation/test_augment.py::test_object_passing_the_camera",
+    ],
 }
 
 

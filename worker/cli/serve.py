@@ -22,7 +22,7 @@ def serve(args: argparse.Namespace) -> int:
 
 def worker(args: argparse.Namespace) -> int:
     # Before anything imports numpy: the prefork children inherit the caps. Nothing
-    # imported so far has (tests/test_cli_package.py).
+    # imported so far has (tests/cli/test_cli_package.py).
     os.environ.update(thread_caps(args.concurrency))
     argv = ["worker", "--pool", args.pool, "--queues", QUEUE, "--loglevel", args.loglevel]
     if args.concurrency is not None:

@@ -22,7 +22,7 @@ from typing import Any
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _scenario(name: str, tmp_path: Path, quick: bool = True, **kw: Any) -> dict[str, Any]:
@@ -252,8 +252,8 @@ def test_db_tests_pass_after_the_cli_tests_in_one_session() -> None:
             "-q",
             "-p",
             "no:cacheprovider",
-            "tests/test_service_cli.py",
-            "tests/test_db_postgres.py",
+            "tests/cli/test_service_cli.py",
+            "tests/platform/test_db_postgres.py",
         ],
         cwd=ROOT,
         capture_output=True,

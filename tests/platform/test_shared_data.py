@@ -11,7 +11,7 @@ from osdar_platform.shared_data import SHARED_ENV, real_labels_path, shared_dir
 
 def test_default_is_beside_the_checkout(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(SHARED_ENV, raising=False)
-    assert shared_dir() == Path(__file__).resolve().parents[1].parent / "shared"
+    assert shared_dir() == Path(__file__).resolve().parents[2].parent / "shared"
 
 
 def test_environment_variable_overrides(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:

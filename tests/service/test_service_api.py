@@ -584,7 +584,7 @@ def test_the_service_imports_no_geometry() -> None:
         capture_output=True,
         text=True,
         check=True,
-        cwd=Path(__file__).parents[1],
+        cwd=Path(__file__).parents[2],
         env={"OSDAR_AR_DATA_DIR": "/nonexistent/osdar-ar-import-test", "PATH": "/usr/bin"},
     )
     mods = set(json.loads(out.stdout))

@@ -17,7 +17,7 @@ import pytest
 
 from worker.bench.hard_cases import CASES, EXISTING_TESTS, GL_CASES, HardContext, run_case
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

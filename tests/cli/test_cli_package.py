@@ -11,7 +11,7 @@ from pathlib import Path
 
 from worker.cli import build_parser
 
-CLI = Path(__file__).resolve().parents[1] / "worker" / "cli"
+CLI = Path(__file__).resolve().parents[2] / "worker" / "cli"
 
 
 def _loaded_after(code: str) -> set[str]:
