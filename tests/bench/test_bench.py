@@ -44,6 +44,7 @@ def test_paper_table_and_band() -> None:
     assert "5.0±1.0 [81.3±50.1]" in text and "0.50±0.10 [2.71±3.16]" in text
 
 
+@pytest.mark.slow
 def test_bench_quick_json(tmp_path: Path) -> None:
     from worker.cli import main
 
@@ -66,6 +67,7 @@ def test_bench_quick_json(tmp_path: Path) -> None:
     assert (tmp_path / "w" / "per_frame" / "fire_site.csv").is_file()
 
 
+@pytest.mark.slow
 @pytest.mark.gl
 def test_bench_hard_json(tmp_path: Path) -> None:
     """``--hard --quick`` writes one row per case with the documented keys."""

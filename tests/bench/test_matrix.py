@@ -86,6 +86,7 @@ def test_summary_reports_every_goal_and_a_heatmap(small_run: dict, tmp_path: Pat
     assert png.stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_cli_quick_matrix_writes_json_markdown_and_heatmap(tmp_path: Path, capsys) -> None:
     """``osdar-ar bench --matrix --quick``: the documented CI subset, end to end."""
     from worker.cli import main

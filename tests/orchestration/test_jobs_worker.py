@@ -448,6 +448,7 @@ def _register(client: Any, headers: dict[str, str], folder: Path) -> str:
     return r.json()["id"]
 
 
+@pytest.mark.slow
 def test_real_worker_on_redis_and_postgres(redis_pg: Settings, seq_folder: Path) -> None:
     settings = redis_pg
     log = Path(settings.data_dir) / "worker.log"
@@ -467,6 +468,7 @@ def test_real_worker_on_redis_and_postgres(redis_pg: Settings, seq_folder: Path)
     app.state.engine.dispose()
 
 
+@pytest.mark.slow
 def test_poison_job_fails_after_bounded_deliveries_and_the_queue_drains(
     redis_pg: Settings, seq_folder: Path
 ) -> None:
@@ -503,6 +505,7 @@ def test_poison_job_fails_after_bounded_deliveries_and_the_queue_drains(
 
 
 # ---------------------------------------------------------------------------- (c) embedded
+@pytest.mark.slow
 def test_embedded_sqlite_broker_worker(tmp_path: Path, seq_folder: Path) -> None:
     import httpx
 

@@ -279,6 +279,7 @@ def test_413_reads_a_bounded_number_of_bytes_and_rate_limits_give_429(tmp_path: 
     assert f["sequence_upload_declared_bytes_read_by_app"] == 0 and f["rate_429"] > 0
 
 
+@pytest.mark.slow
 def test_hostile_uploads_refused_and_mutated_files_fail_cleanly(tmp_path: Path) -> None:
     f = _scenario("hostile_uploads", tmp_path)
     assert f["archive_attacks_refused_cleanly"] == f["archive_attacks"] >= 20
@@ -287,36 +288,43 @@ def test_hostile_uploads_refused_and_mutated_files_fail_cleanly(tmp_path: Path) 
     assert "50000 x 50000" in (big.get("reason") or "")
 
 
+@pytest.mark.slow
 def test_poison_job_fails_after_bounded_deliveries(tmp_path: Path) -> None:
     f = _scenario("poison", tmp_path)
     assert f["max_stage_deliveries_seen"] <= f["max_deliveries_setting"] + 1
 
 
+@pytest.mark.slow
 def test_sigkill_workers_at_random_points_loses_no_job(tmp_path: Path) -> None:
     f = _scenario("kill_workers", tmp_path)
     assert f["kills_by_kind"].get("worker") == 1 and f["attempts_total"] >= f["kills"]
 
 
+@pytest.mark.slow
 def test_store_outage_during_publish_is_retried(tmp_path: Path) -> None:
     f = _scenario("store_outage", tmp_path)
     assert f["store_retries_total"] > 0 and f["partial_archives_visible"] == 0
 
 
+@pytest.mark.slow
 def test_redis_restart_mid_job_loses_no_job(tmp_path: Path) -> None:
     f = _scenario("redis_restart", tmp_path)
     assert f["jobs_lost"] == 0
 
 
+@pytest.mark.slow
 def test_postgres_restart_mid_job_loses_no_job_and_answers_503(tmp_path: Path) -> None:
     f = _scenario("db_restart", tmp_path)
     assert f["jobs_lost"] == 0 and f["api_answers_while_down"].get("503", 0) > 0
 
 
+@pytest.mark.slow
 def test_schemathesis_finds_no_server_error_and_no_auth_bypass(tmp_path: Path) -> None:
     f = _scenario("schemathesis_run", tmp_path)
     assert f["requests_answered"] > 100
 
 
+@pytest.mark.slow
 def test_polling_under_load_reports_latency_and_no_errors(tmp_path: Path) -> None:
     f = _scenario("load_poll", tmp_path)
     assert f["errors"] == 0 and f["latency_ms_p99"] > 0
