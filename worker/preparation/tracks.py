@@ -431,6 +431,96 @@ def _last_stretch(pts: F64, roll: F64, span: float) -> tuple[F64, F64]:
     return pts[-keep:], roll[-keep:]
 
 
+def _predicted_reference(pts: F64, roll: F64, step: float) -> tuple[Centreline, float] | None:
+    """A reference curve (the last metres of the track, continued ``step`` m with the end's
+    heading, curvature and grade) and the arc length of the last knot along it; None where
+    no curve fits the knots."""
+    # Only the end of the track matters here: a spline through its last TAIL_SPAN_M
+    # (knots further back move its end by less than 1e-6 of their change).
+    tp, tr = _last_stretch(pts, roll, TAIL_SPAN_M)
+    try:
+        cl = Centreline(tp, tr)
+    except ValueError:
+        return None
+    L = cl.length
+    tail = min(L, 20.0)
+    h0, kappa, grade = _end_state(tp, tail)
+    u = np.arange(0.5, step + 1e-9, 0.5)
+    # integrate heading (midpoint rule) for the horizontal arc
+    du = np.diff(np.concatenate([[0.0], u]))
+    hm = h0 + kappa * (u - 0.5 * du)
+    xy = pts[-1, :2] + np.cumsum(np.stack([np.cos(hm), np.sin(hm)], 1) * du[:, None], axis=0)
+    z = pts[-1, 2] + grade * u
+    pred = np.column_stack([xy, z])
+    keep_tail = cl.point(np.linspace(max(0.0, L - tail), L, 5))[:-1]
+    ref_pts = np.vstack([keep_tail, pts[-1:], pred])
+    ref_roll = np.full(len(ref_pts), roll[-1])
+    try:
+        ref = Centreline(ref_pts, ref_roll)
+    except ValueError:
+        return None
+    return ref, float(ref.project(pts[-1:]).s[0])
+
+
+def _measured_step(bins: _Bins, ref: Centreline, s_end: float) -> F64 | None:
+    """The knots (k, 3) of the step past ``s_end`` placed on the measured rails, or None when
+    no bin saw both rails (one rail alone can be taken for the other: a half-gauge slip).
+
+    The lateral offset and its slope over the step are a robust weighted line through the
+    bins' rail-pair centres (the smoother refines them later); the height is their median.
+    """
+    if not len(bins.s):
+        return None
+    both = np.isfinite(bins.d_left) & np.isfinite(bins.d_right)
+    if int(np.sum(both)) < 1:
+        return None
+    off = np.where(
+        both,
+        0.5 * (bins.d_left + bins.d_right),
+        np.where(np.isfinite(bins.d_left), bins.d_left, bins.d_right),
+    )
+    v = np.where(
+        both,
+        0.5 * (bins.v_left + bins.v_right),
+        np.where(np.isfinite(bins.v_left), bins.v_left, bins.v_right),
+    )
+    s_new = np.arange(s_end + 1.0, ref.length + 1e-9, 1.0)
+    ww = np.sqrt(bins.n_left + bins.n_right)
+    a, slope = 0.0, 0.0
+    x = bins.s - s_end
+    fit_line = len(bins.s) >= 3 and np.ptp(bins.s) >= 2.0
+    for sig in (0.03, 0.02, 0.02):
+        r = off - (a + slope * x)
+        wr = ww * np.exp(-0.5 * (r / sig) ** 2)
+        if wr.sum() < 1e-9:
+            break
+        if fit_line:
+            slope, a = np.polyfit(x, off, 1, w=np.sqrt(wr) + 1e-12)
+            slope = float(np.clip(slope, -0.02, 0.02))
+        else:
+            a = float(np.sum(wr * off) / wr.sum())
+    o_new = a + slope * (s_new - s_end)
+    vv = float(np.median(v))
+    c = ref.point(s_new)
+    new_pts: F64 = c + o_new[:, None] * _left_normal(ref.tangent(s_new))
+    new_pts[:, 2] = c[:, 2] + vv
+    return new_pts
+
+
+def _first_merge(new_pts: F64, stop_at: list[Centreline], merge_distance: float) -> int | None:
+    """Index of the first knot of ``new_pts`` (k, 3) within ``merge_distance`` of another
+    track (inside its ends), or None."""
+    if not stop_at:
+        return None
+    dmin = np.full(len(new_pts), np.inf)
+    for other in stop_at:
+        pr = other.project(new_pts)
+        inside = (pr.s > 1e-6) & (pr.s < other.length - 1e-6)
+        dmin = np.minimum(dmin, np.where(inside, pr.distance, np.inf))
+    hit = dmin < merge_distance
+    return int(np.argmax(hit)) if np.any(hit) else None
+
+
 def _extend_forward(
     rails: _RailPoints,
     pts: F64,
@@ -441,8 +531,11 @@ def _extend_forward(
 ) -> tuple[F64, F64]:
     """Follow the track past the last knot of ``pts`` (k, 3); returns the extended knots/roll.
 
-    ``region`` = (trajectory samples (m, 3), corridor half-width, lookahead): the follower
-    stops where the corridor ends.
+    Each step predicts the track ``follow_step`` m on, measures the rails around the
+    prediction and keeps the measured knots, or coasts on the prediction (up to
+    ``max_gap`` m); the track ends at its last measured knot. ``region`` = (trajectory
+    samples (m, 3), corridor half-width, lookahead): the follower stops where the corridor
+    ends, or where the track runs into another one (``stop_at``).
     """
     samples, half_width, lookahead = region
     reach = cKDTree(samples[:, :2])
@@ -450,93 +543,27 @@ def _extend_forward(
     gap = 0.0
     last_supported = len(pts)
     for _ in range(int(2 * (lookahead + 60.0) / opt.follow_step) + 4):
-        # Only the end of the track matters here: a spline through its last TAIL_SPAN_M
-        # (knots further back move its end by less than 1e-6 of their change).
-        tp, tr = _last_stretch(pts, roll, TAIL_SPAN_M)
-        try:
-            cl = Centreline(tp, tr)
-        except ValueError:
+        predicted = _predicted_reference(pts, roll, opt.follow_step)
+        if predicted is None:
             break
-        L = cl.length
-        tail = min(L, 20.0)
-        h0, kappa, grade = _end_state(tp, tail)
-        u = np.arange(0.5, opt.follow_step + 1e-9, 0.5)
-        # integrate heading (midpoint rule) for the horizontal arc
-        du = np.diff(np.concatenate([[0.0], u]))
-        hm = h0 + kappa * (u - 0.5 * du)
-        xy = pts[-1, :2] + np.cumsum(np.stack([np.cos(hm), np.sin(hm)], 1) * du[:, None], axis=0)
-        z = pts[-1, 2] + grade * u
-        pred = np.column_stack([xy, z])
-        keep_tail = cl.point(np.linspace(max(0.0, L - tail), L, 5))[:-1]
-        ref_pts = np.vstack([keep_tail, pts[-1:], pred])
-        ref_roll = np.full(len(ref_pts), roll[-1])
-        try:
-            ref = Centreline(ref_pts, ref_roll)
-        except ValueError:
-            break
-        s_end = ref.project(pts[-1:]).s[0]
+        ref, s_end = predicted
         bins = _measure(rails, ref, s_end, ref.length, opt.follow_tol, opt.bin_len)
-        new_pts: F64
-        n_both = int(np.sum(np.isfinite(bins.d_left) & np.isfinite(bins.d_right)))
-        # a step counts only with both rails seen in it: one rail alone can be taken for
-        # the other (a half-gauge slip)
-        if len(bins.s) and n_both >= 1:
-            both = np.isfinite(bins.d_left) & np.isfinite(bins.d_right)
-            off = np.where(
-                both,
-                0.5 * (bins.d_left + bins.d_right),
-                np.where(np.isfinite(bins.d_left), bins.d_left, bins.d_right),
-            )
-            v = np.where(
-                both,
-                0.5 * (bins.v_left + bins.v_right),
-                np.where(np.isfinite(bins.v_left), bins.v_left, bins.v_right),
-            )
-            # offset and heading correction over the step (the smoother refines later)
-            s_new = np.arange(s_end + 1.0, ref.length + 1e-9, 1.0)
-            ww = np.sqrt(bins.n_left + bins.n_right)
-            a, slope = 0.0, 0.0
-            x = bins.s - s_end
-            fit_line = len(bins.s) >= 3 and np.ptp(bins.s) >= 2.0
-            for sig in (0.03, 0.02, 0.02):
-                r = off - (a + slope * x)
-                wr = ww * np.exp(-0.5 * (r / sig) ** 2)
-                if wr.sum() < 1e-9:
-                    break
-                if fit_line:
-                    slope, a = np.polyfit(x, off, 1, w=np.sqrt(wr) + 1e-12)
-                    slope = float(np.clip(slope, -0.02, 0.02))
-                else:
-                    a = float(np.sum(wr * off) / wr.sum())
-            o_new = a + slope * (s_new - s_end)
-            vv = float(np.median(v))
-            c = ref.point(s_new)
-            new_pts = c + o_new[:, None] * _left_normal(ref.tangent(s_new))
-            new_pts[:, 2] = c[:, 2] + vv
-            gap = 0.0
-            supported = True
+        measured = _measured_step(bins, ref, s_end)
+        supported = measured is not None
+        if measured is not None:
+            new_pts, gap = measured, 0.0
         else:
-            s_new = np.arange(s_end + 1.0, ref.length + 1e-9, 1.0)
-            new_pts = ref.point(s_new)
+            new_pts = ref.point(np.arange(s_end + 1.0, ref.length + 1e-9, 1.0))
             gap += opt.follow_step
-            supported = False
         if len(new_pts) == 0:
             break
-        # stop where the track runs into another one or leaves the corridor
-        if stop_at:
-            dmin = np.full(len(new_pts), np.inf)
-            for other in stop_at:
-                pr = other.project(new_pts)
-                inside = (pr.s > 1e-6) & (pr.s < other.length - 1e-6)
-                dmin = np.minimum(dmin, np.where(inside, pr.distance, np.inf))
-            hit = dmin < opt.merge_distance
-            if np.any(hit):
-                first = int(np.argmax(hit))
-                if supported and first > 0:
-                    pts = np.vstack([pts, new_pts[:first]])
-                    roll = np.concatenate([roll, np.full(first, roll[-1])])
-                    last_supported = len(pts)
-                break
+        first = _first_merge(new_pts, stop_at, opt.merge_distance)
+        if first is not None:
+            if supported and first > 0:
+                pts = np.vstack([pts, new_pts[:first]])
+                roll = np.concatenate([roll, np.full(first, roll[-1])])
+                last_supported = len(pts)
+            break
         d, _ = reach.query(new_pts[-1, :2])
         d_ends = min(
             np.linalg.norm(new_pts[-1, :2] - samples[0, :2]),
