@@ -468,8 +468,17 @@ def _is_moving(c: dict[str, Any]) -> bool:
     return c["cell"]["motion"] != "stationary" and c["cell"]["scene"] != "stationary"
 
 
-def goal_checks(cells: list[dict[str, Any]]) -> dict[str, Any]:
-    """Each goal of :data:`GOALS` with its measured value and pass / MISS."""
+def _p90_check(values: list[float | None], bound: float, pct: float = 90) -> dict[str, Any]:
+    """The ``pct`` percentile of the values present against an upper bound."""
+    v = [x for x in values if x is not None]
+    got = float(np.percentile(v, pct)) if v else None
+    ok = got is not None and got <= bound
+    return {"bound": bound, "measured": got, "cells": len(v), "ok": ok}
+
+
+def _pixel_goals(cells: list[dict[str, Any]]) -> dict[str, Any]:
+    """The paper RPE / jitter and anchor-jitter goals of ``auto`` on rgb_highres_center, on
+    moving cells of 20 frames or more and on the short or standing ones."""
     c2 = "rgb_highres_center"
 
     def paper(c: dict[str, Any], k: str) -> float | None:
@@ -478,60 +487,41 @@ def goal_checks(cells: list[dict[str, Any]]) -> dict[str, Any]:
     def anchor_jit(c: dict[str, Any]) -> float | None:
         return (c["strategies"]["auto"]["anchor"].get(c2) or {}).get("jitter_p90_px")
 
-    moving = [c for c in cells if _is_moving(c) and c["cell"]["frames"] >= 20]
-    short = [c for c in cells if not _is_moving(c) or c["cell"]["frames"] < 20]
+    groups = {
+        "moving": [c for c in cells if _is_moving(c) and c["cell"]["frames"] >= 20],
+        "short": [c for c in cells if not _is_moving(c) or c["cell"]["frames"] < 20],
+    }
     checks: dict[str, Any] = {}
+    for group, members in groups.items():
+        for name, values in (
+            ("c2_rpe", [paper(c, "rpe_mean") for c in members]),
+            ("c2_jitter", [paper(c, "jitter_mean") for c in members]),
+            ("anchor_jitter", [anchor_jit(c) for c in members]),
+        ):
+            key = f"{group}_{name}_p90_px"
+            checks[key] = _p90_check(values, GOALS[key])
+    return checks
 
-    def check(name: str, values: list[float | None], bound: float, pct: float = 90) -> None:
-        v = [x for x in values if x is not None]
-        got = float(np.percentile(v, pct)) if v else None
-        checks[name] = {
-            "bound": bound,
-            "measured": got,
-            "cells": len(v),
-            "ok": got is not None and got <= bound,
-        }
 
-    check(
-        "moving_c2_rpe_p90_px",
-        [paper(c, "rpe_mean") for c in moving],
-        GOALS["moving_c2_rpe_p90_px"],
-    )
-    check(
-        "moving_c2_jitter_p90_px",
-        [paper(c, "jitter_mean") for c in moving],
-        GOALS["moving_c2_jitter_p90_px"],
-    )
-    check(
-        "moving_anchor_jitter_p90_px",
-        [anchor_jit(c) for c in moving],
-        GOALS["moving_anchor_jitter_p90_px"],
-    )
-    check(
-        "short_c2_rpe_p90_px", [paper(c, "rpe_mean") for c in short], GOALS["short_c2_rpe_p90_px"]
-    )
-    check(
-        "short_c2_jitter_p90_px",
-        [paper(c, "jitter_mean") for c in short],
-        GOALS["short_c2_jitter_p90_px"],
-    )
-    check(
-        "short_anchor_jitter_p90_px",
-        [anchor_jit(c) for c in short],
-        GOALS["short_anchor_jitter_p90_px"],
-    )
+def _fused_goal(cells: list[dict[str, Any]]) -> dict[str, Any]:
+    """Fused within 10 % of the better of its inputs in every cell."""
     ratios = [max(fused_vs_inputs(c).values(), default=None) for c in cells]
     worse = [
         c["name"]
         for c, r in zip(cells, ratios, strict=True)
         if r is not None and r > GOALS["fused_vs_inputs_ratio"]
     ]
-    checks["fused_within_10pct_of_inputs"] = {
+    return {
         "bound": GOALS["fused_vs_inputs_ratio"],
         "measured_worst": _dist(ratios)["worst"],
         "cells_missing": worse,
         "ok": not worse,
     }
+
+
+def _auto_goals(cells: list[dict[str, Any]]) -> dict[str, Any]:
+    """``auto`` within 1.25x of the best strategy at lag 10 (share of cells) and never worse
+    than ``ins`` in rotation."""
     within, never_worse_than_ins = [], []
     for c in cells:
         best = min((_lag10(c, s, "r") for s in STRATEGIES[:-1]), key=lambda x: x or math.inf)
@@ -547,11 +537,21 @@ def goal_checks(cells: list[dict[str, Any]]) -> dict[str, Any]:
         within.append(ok)
         never_worse_than_ins.append(ins is None or a <= max(ins * 1.0001, 1e-3))
     share = float(np.mean(within)) if within else None
-    checks["auto_within_1p25_of_best"] = {
-        "bound": GOALS["auto_within_1p25_share"],
-        "measured": share,
-        "ok": share is not None and share >= GOALS["auto_within_1p25_share"],
+    return {
+        "auto_within_1p25_of_best": {
+            "bound": GOALS["auto_within_1p25_share"],
+            "measured": share,
+            "ok": share is not None and share >= GOALS["auto_within_1p25_share"],
+        },
+        "auto_never_worse_than_ins": {
+            "ok": all(never_worse_than_ins),
+            "cells": len(never_worse_than_ins),
+        },
     }
+
+
+def _bound_goals(cells: list[dict[str, Any]]) -> dict[str, Any]:
+    """Coverage and looseness of ``auto``'s per-frame placement bound over every frame."""
     errs, bnds = [], []
     for c in cells:
         for cam in CAMERAS:
@@ -561,30 +561,46 @@ def goal_checks(cells: list[dict[str, Any]]) -> dict[str, Any]:
     e_arr, b_arr = np.asarray(errs), np.asarray(bnds)
     cov = float(np.mean(e_arr <= b_arr)) if len(e_arr) else None
     loose = float(np.median(b_arr) / max(np.median(e_arr), 1e-9)) if len(e_arr) else None
-    checks["confidence_bound_coverage"] = {
-        "bound": GOALS["bound_coverage"], "measured": cov, "frames": len(e_arr),
-        "ok": cov is not None and cov >= GOALS["bound_coverage"],
+    return {
+        "confidence_bound_coverage": {
+            "bound": GOALS["bound_coverage"], "measured": cov, "frames": len(e_arr),
+            "ok": cov is not None and cov >= GOALS["bound_coverage"],
+        },
+        "confidence_bound_looseness": {
+            "bound": GOALS["bound_looseness"], "measured": loose,
+            "ok": loose is not None and loose <= GOALS["bound_looseness"],
+        },
     }  # fmt: skip
-    checks["confidence_bound_looseness"] = {
-        "bound": GOALS["bound_looseness"], "measured": loose,
-        "ok": loose is not None and loose <= GOALS["bound_looseness"],
-    }  # fmt: skip
-    checks["auto_never_worse_than_ins"] = {
-        "ok": all(never_worse_than_ins),
-        "cells": len(never_worse_than_ins),
-    }
+
+
+def _ins_band_goal(cells: list[dict[str, Any]]) -> dict[str, Any]:
+    """Raw INS's paper RPE on rgb_highres_center within the paper's band on every moving
+    osdar23 cell."""
+    c2 = "rgb_highres_center"
     band = [
         ((c["strategies"]["ins"].get("paper") or {}).get(c2) or {}).get("rpe_mean")
         for c in cells
         if c["cell"]["profile"] == "osdar23" and _is_moving(c)
     ]
     band = [b for b in band if b is not None]
-    checks["ins_in_paper_band_osdar23"] = {
+    return {
         "band": list(INS_BAND_PX),
         "measured": _dist(band),
         "ok": bool(band) and all(INS_BAND_PX[0] <= b <= INS_BAND_PX[1] for b in band),
     }
-    return checks
+
+
+def goal_checks(cells: list[dict[str, Any]]) -> dict[str, Any]:
+    """Each goal of :data:`GOALS` with its measured value and pass / MISS."""
+    auto = _auto_goals(cells)
+    return {
+        **_pixel_goals(cells),
+        "fused_within_10pct_of_inputs": _fused_goal(cells),
+        "auto_within_1p25_of_best": auto["auto_within_1p25_of_best"],
+        **_bound_goals(cells),
+        "auto_never_worse_than_ins": auto["auto_never_worse_than_ins"],
+        "ins_in_paper_band_osdar23": _ins_band_goal(cells),
+    }
 
 
 def health_confusion(cells: list[dict[str, Any]]) -> dict[str, Any]:
