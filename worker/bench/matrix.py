@@ -21,12 +21,9 @@ reported, never hidden.
 
 from __future__ import annotations
 
-import datetime
-import importlib.metadata
 import json
 import logging
 import math
-import subprocess
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
@@ -41,6 +38,7 @@ from geometry.geodesy import WorldFrame
 from geometry.pose_uncertainty import PoseInformation, anchor_bound_px, anchor_pixel_jacobian
 from geometry.poses import PoseTrack, reexpress
 from geometry.trajectory_error import relative_pose_errors
+from worker.bench.report import FIGURES_HEADING, provenance
 from worker.evaluation.evaluate import evaluate_strategies, full_resolution_cameras
 from worker.osdar.sequence import Sequence
 from worker.preparation.centreline import Centreline
@@ -837,11 +835,6 @@ def run_and_report(
     return result
 
 
-#: The heading under which a report's figures start; what precedes it in an existing
-#: report (its method text) is kept when the figures are regenerated.
-FIGURES_HEADING = "## Figures"
-
-
 def report_text(md: Path, result: dict[str, Any], png: Path) -> str:
     """The markdown report: an existing report's text above :data:`FIGURES_HEADING` (else
     a title and the figure), then the figures stamped with the version, commit and date."""
@@ -849,24 +842,3 @@ def report_text(md: Path, result: dict[str, Any], png: Path) -> str:
     if md.is_file() and FIGURES_HEADING in (old := md.read_text()):
         head = old[: old.index(FIGURES_HEADING)]
     return f"{head}{FIGURES_HEADING}\n\n{to_markdown(result, stamp=provenance())}"
-
-
-def provenance() -> str:
-    """ "osdar-ar <version>, commit <short hash>, <date>" (the commit when run from a git
-    checkout)."""
-    try:
-        version = importlib.metadata.version("osdar-ar")
-    except importlib.metadata.PackageNotFoundError:
-        version = "unknown"
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        commit = "unknown"
-    return f"osdar-ar {version}, commit {commit}, {datetime.date.today().isoformat()}."

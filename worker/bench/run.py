@@ -14,6 +14,7 @@ from worker.bench.floor import floor_ratio
 from worker.bench.hard_cases import format_hard_table, run_hard_cases
 from worker.bench.paper import BenchSettings, format_table, make_sequence, paper_band, run_sequence
 from worker.bench.pareto import config_name, pareto_front, plot_pareto, run_configs
+from worker.bench.report import provenance
 from worker.evaluation.evaluate import _finite, write_rows_csv
 
 log = logging.getLogger(__name__)
@@ -79,7 +80,7 @@ def run_bench(
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
-    result: dict[str, Any] = {"quick": quick, "settings": asdict(s)}
+    result: dict[str, Any] = {"quick": quick, "settings": asdict(s), "provenance": provenance()}
     if hard:
         cases = run_hard_cases(workdir / "hard", reduced=quick)
         _print("hard cases (case | what degrades | warning given | error vs bound)")

@@ -25,8 +25,14 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "goals (ok / MISS), heatmap PNG",
     )  # fmt: skip
     p.add_argument(
-        "--markdown", type=Path, default=None, help="with --matrix: write the report as markdown"
-    )
+        "--markdown", type=Path, default=None,
+        help="write the figures as a markdown report (an existing report keeps its text above "
+        "'## Figures'); with --report: from a saved JSON instead of a run",
+    )  # fmt: skip
+    p.add_argument(
+        "--report", type=Path, default=None, metavar="JSON",
+        help="run nothing: write --markdown from the JSON of an earlier `bench [--hard] --json`",
+    )  # fmt: skip
     p.add_argument("--no-floor", action="store_true", help="skip the I/O floor measurement")
     p.add_argument(
         "--ins-profile", default="osdar23",
