@@ -16,6 +16,13 @@ BuiltinObject = Literal[BUILTIN_OBJECTS]  # type: ignore[valid-type]
 Strategy = Literal[STRATEGIES]  # type: ignore[valid-type]
 MeshFileType = Literal[MESH_FILE_TYPES]  # type: ignore[valid-type]
 Name = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^[\w .:@+-]+$")]
+#: What an id of ours (a job, sequence or asset: a UUID) can be made of. Checked before any
+#: lookup: a NUL or a control character must never reach the database (PostgreSQL refuses
+#: NUL in text, which would be a 500), and the schema says so, so clients know.
+ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+Ident = Annotated[str, Field(min_length=1, max_length=64, pattern=ID_PATTERN)]
+#: A file system path: any characters but NUL (which no file system accepts).
+NO_NUL_PATTERN = r"^[^\x00]+$"
 CameraName = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_]+$")]
 
 
@@ -42,7 +49,10 @@ class Health(BaseModel):
 class SequenceRegister(_In):
     """Register a sequence folder the workers can read (absolute path)."""
 
-    path: str = Field(min_length=1, max_length=4096, examples=["/data/osdar23/1_calibration_1.1"])
+    path: str = Field(
+        min_length=1, max_length=4096, pattern=NO_NUL_PATTERN,
+        examples=["/data/osdar23/1_calibration_1.1"],
+    )  # fmt: skip
     name: Name | None = None
 
 
@@ -97,7 +107,9 @@ class ObjectSpec(_In):
     """The obstacle: a built-in mesh or an uploaded asset, and its scale."""
 
     builtin: BuiltinObject | None = Field(None, description="built-in obstacle name")
-    asset_id: str | None = Field(None, max_length=64, description="id of an uploaded asset")
+    asset_id: str | None = Field(
+        None, max_length=64, pattern=ID_PATTERN, description="id of an uploaded asset"
+    )
     scale: float = Field(1.0, gt=0.0, le=100.0, description="uniform scale of the mesh")
 
     @model_validator(mode="after")
@@ -148,7 +160,7 @@ Clicks = dict[CameraName, dict[str, tuple[float, float]]]
 class JobCreate(_In):
     """A job spec; checked against the sequence at submission."""
 
-    sequence_id: str = Field(min_length=1, max_length=64)
+    sequence_id: Ident
     cameras: list[CameraName] = Field(
         default_factory=lambda: ["rgb_center", "rgb_highres_center"], min_length=1, max_length=8
     )

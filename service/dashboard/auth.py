@@ -101,7 +101,7 @@ def read_session(request: Request, session: Any, settings: Settings) -> DashSess
     except (BadSignature, KeyError, TypeError, ValueError):
         return None
     key = session.get(ApiKey, key_id)
-    if key is None or key.revoked or not hmac.compare_digest(fingerprint(key), fp):
+    if key is None or key.revoked or not same_text(fingerprint(key), fp):
         return None
     return DashSession(key=key, csrf=csrf)
 
@@ -155,11 +155,19 @@ def login_token_ok(request: Request, settings: Settings, form_token: str) -> boo
         token = _serializer(settings, _LOGIN_SALT).loads(raw, max_age=LOGIN_MAX_AGE_S)
     except BadSignature:
         return False
-    return isinstance(token, str) and hmac.compare_digest(token, form_token)
+    return isinstance(token, str) and same_text(token, form_token)
+
+
+def same_text(a: str, b: str) -> bool:
+    """Constant-time equality of two strings of any characters (``hmac.compare_digest``
+    raises TypeError on a str with non-ASCII characters: a form field is user input)."""
+    return hmac.compare_digest(
+        a.encode("utf-8", "surrogatepass"), b.encode("utf-8", "surrogatepass")
+    )
 
 
 def csrf_ok(user: DashSession, form_token: str) -> bool:
-    return bool(form_token) and hmac.compare_digest(user.csrf, form_token)
+    return bool(form_token) and same_text(user.csrf, form_token)
 
 
 def same_origin(request: Request) -> bool:

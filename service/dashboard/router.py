@@ -25,6 +25,7 @@ Every route but login shows only the logged-in key's objects; another key's obje
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import urlencode
@@ -41,6 +42,7 @@ from service.dashboard.auth import BASE, ApiUser, DashSession, PageUser
 from service.deps import SessionDep, SettingsDep, StoreDep
 from service.downloads import stream_object
 from service.errors import Conflict, NotFound
+from service.schemas import ID_PATTERN
 from service.services import assets as svc_assets
 from service.services import dashboard as view
 from service.services import jobs as svc_jobs
@@ -75,7 +77,7 @@ templates = Jinja2Templates(env=_env)
 
 router = APIRouter(prefix=BASE, include_in_schema=False)
 
-JobId = Annotated[str, PathParam(max_length=64)]
+JobId = Annotated[str, PathParam(max_length=64, pattern=ID_PATTERN)]
 Offset = Annotated[int, Query(ge=0, le=10_000_000)]
 FormToken = Annotated[str, Form(max_length=200)]
 
@@ -212,7 +214,7 @@ def jobs_page(
     session: SessionDep,
     offset: Offset = 0,
     state: JobState | None = None,
-    sequence_id: Annotated[str | None, Query(max_length=64)] = None,
+    sequence_id: Annotated[str | None, Query(max_length=64, pattern=ID_PATTERN)] = None,
 ) -> HTMLResponse:
     rows, total = svc_jobs.list_jobs(
         session=session,
@@ -325,7 +327,7 @@ def jobs_status(
     session: SessionDep,
     id: Annotated[list[str] | None, Query(max_length=view.MAX_POLL_IDS)] = None,
 ) -> JSONResponse:
-    ids = [i[:64] for i in id or []]
+    ids = [i for i in id or [] if re.fullmatch(ID_PATTERN, i)]  # others name no job
     items = view.jobs_status(session=session, owner=user.key, ids=ids)
     return JSONResponse({"jobs": items}, headers={"Cache-Control": "no-store"})
 
@@ -360,7 +362,7 @@ def sequences_page(
 @router.get("/sequences/{sequence_id}", response_class=HTMLResponse)
 def sequence_page(
     request: Request,
-    sequence_id: Annotated[str, PathParam(max_length=64)],
+    sequence_id: Annotated[str, PathParam(max_length=64, pattern=ID_PATTERN)],
     user: PageUser,
     session: SessionDep,
 ) -> Response:

@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request, status
+from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
 
 from service.deps import CurrentKey, SessionDep, SettingsDep, StoreDep
@@ -21,9 +22,11 @@ from service.routers.common import (
     binary_body,
     content_length,
 )
-from service.schemas import AssetPublic, MeshFileType, Name, Page
+from service.schemas import ID_PATTERN, AssetPublic, MeshFileType, Name, Page
 from service.services import assets as svc
 from service.services.uploads import receive_upload
+
+AssetId = Annotated[str, PathParam(max_length=64, pattern=ID_PATTERN)]
 
 router = APIRouter(prefix="/assets", tags=["assets"], responses=AUTH_ERRORS)
 
@@ -82,7 +85,7 @@ def list_assets(
 
 
 @router.get("/{asset_id}", response_model=AssetPublic, responses=NOT_FOUND, summary="An asset")
-def get_asset(asset_id: str, key: CurrentKey, session: SessionDep) -> AssetPublic:
+def get_asset(asset_id: AssetId, key: CurrentKey, session: SessionDep) -> AssetPublic:
     return AssetPublic.model_validate(svc.get_asset(session=session, owner=key, asset_id=asset_id))
 
 
@@ -93,5 +96,5 @@ def get_asset(asset_id: str, key: CurrentKey, session: SessionDep) -> AssetPubli
     responses={**NOT_FOUND, **CONFLICT},
     summary="Delete an asset",
 )
-def delete_asset(asset_id: str, key: CurrentKey, session: SessionDep, store: StoreDep) -> None:
+def delete_asset(asset_id: AssetId, key: CurrentKey, session: SessionDep, store: StoreDep) -> None:
     svc.delete_asset(session=session, owner=key, asset_id=asset_id, store=store)

@@ -18,7 +18,7 @@ from service.routers.common import (
     Limit,
     Offset,
 )
-from service.schemas import JobCreate, JobEventPublic, JobPublic, Page
+from service.schemas import ID_PATTERN, JobCreate, JobEventPublic, JobPublic, Page
 from service.services import jobs as svc
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], responses=AUTH_ERRORS)
@@ -34,7 +34,7 @@ IdempotencyKey = Annotated[
     ),
 ]
 RangeHeader = Annotated[str | None, Header(alias="Range", max_length=200)]
-JobId = Annotated[str, Path(max_length=64)]
+JobId = Annotated[str, Path(max_length=64, pattern=ID_PATTERN)]
 
 
 @router.post(
@@ -80,7 +80,7 @@ def list_jobs(
     limit: Limit = 20,
     offset: Offset = 0,
     state: Annotated[list[JobState] | None, Query(description="filter; repeatable")] = None,
-    sequence_id: Annotated[str | None, Query(max_length=64)] = None,
+    sequence_id: Annotated[str | None, Query(max_length=64, pattern=ID_PATTERN)] = None,
 ) -> Page[JobPublic]:
     rows, total = svc.list_jobs(
         session=session,

@@ -28,11 +28,11 @@ from service.services.uploads import receive_upload
 
 
 class SequenceIdConvertor(Convertor[str]):
-    """A sequence id in a path: any segment but ``upload``, so that GET and DELETE of
-    ``/v1/sequences/upload`` are not served as a sequence named "upload" (its only
-    method is POST, and a 405 says so)."""
+    """A sequence id in a path: an id's characters (``ID_PATTERN``), but not ``upload``, so
+    that GET and DELETE of ``/v1/sequences/upload`` are not served as a sequence named
+    "upload" (its only method is POST, and a 405 says so). Anything else is no route: 404."""
 
-    regex = "(?!upload$)[^/]+"
+    regex = "(?!upload$)[A-Za-z0-9_-]{1,64}"
 
     def convert(self, value: str) -> str:
         return value

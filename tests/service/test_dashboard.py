@@ -403,6 +403,8 @@ def test_login_needs_its_form_token_and_the_same_origin(dash: Dash) -> None:
     # a token that is not the one of this browser's login cookie
     r = client.post("/dashboard/login", data={**form, "token": token[::-1]})
     assert r.status_code == 403
+    r = client.post("/dashboard/login", data={**form, "token": "ü" + token[1:]})  # not ASCII
+    assert r.status_code == 403
     # a cross-site form (Origin of another site), even with the right token
     r = client.post(
         "/dashboard/login",
@@ -431,6 +433,7 @@ def test_logout_needs_the_sessions_form_token(dash: Dash) -> None:
     token = TOKEN.search(page).group(1)  # type: ignore[union-attr]
     assert client.post("/dashboard/logout", data={}).status_code == 403
     assert client.post("/dashboard/logout", data={"token": "x" * 20}).status_code == 403
+    assert client.post("/dashboard/logout", data={"token": "é" * 20}).status_code == 403
     r = client.post(
         "/dashboard/logout", data={"token": token}, headers={"Origin": "https://evil.example"}
     )

@@ -681,3 +681,28 @@ def test_the_database_away_is_503_with_retry_after_never_500(tmp_path: Path) -> 
             r = client.request(method, path, headers=h)
             assert r.status_code == 503, (method, path, r.status_code, r.text)
             assert int(r.headers["retry-after"]) > 0
+
+
+@pytest.mark.parametrize(
+    ("method", "url", "body", "status"),
+    [
+        ("GET", "/v1/jobs/%00", None, 422),
+        ("GET", "/v1/jobs/a%00b/archive", None, 422),
+        ("GET", "/v1/assets/%00", None, 422),
+        ("DELETE", "/v1/assets/%00", None, 422),
+        ("GET", "/v1/sequences/%00", None, 404),  # no route: an id has no NUL
+        ("GET", "/v1/jobs?sequence_id=%00", None, 422),
+        ("POST", "/v1/jobs", {"sequence_id": "\u0000"}, 422),
+        ("POST", "/v1/jobs", {"object": {"asset_id": "a\u0000"}}, 422),
+        ("POST", "/v1/sequences", {"path": "/tmp/a\u0000b"}, 422),
+    ],
+)
+def test_nul_characters_never_reach_the_database(
+    api: Api, method: str, url: str, body: dict | None, status: int
+) -> None:
+    """Found by the dashboard fuzz: PostgreSQL refuses NUL in text, and an id or path with
+    one was a 500. Ids have a pattern in the schema, paths refuse NUL: 4xx on both backends."""
+    if url == "/v1/jobs" and body is not None:
+        body = api.job_spec(**body)
+    r = api.client.request(method, url, json=body, headers=api.h())
+    assert r.status_code == status, r.text
