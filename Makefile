@@ -31,7 +31,7 @@ test-full: setup
 # Every scenario of ../shared/design/RELIABILITY.md in its full form, printing its figures
 # (needs Redis and PostgreSQL on loopback; redis_restart restarts the local Redis).
 RELIABILITY := idempotency_burst authz_matrix limits hostile_uploads poison kill_workers \
-	store_outage redis_restart db_restart schemathesis_run load_poll
+	store_outage redis_restart db_restart schemathesis_run dashboard_fuzz load_poll
 
 reliability: setup
 	@fail=0; for s in $(RELIABILITY); do \
