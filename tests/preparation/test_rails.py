@@ -310,3 +310,25 @@ def test_rail_frames_beyond_the_start_measure_across_the_extension() -> None:
     np.testing.assert_allclose(
         T[:, :3, 3], [[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [50.0, 0.0, 0.0]], atol=1e-6
     )
+
+
+@pytest.mark.parametrize("offset", [0.4, -0.6, 1.2])
+def test_a_trajectory_beside_its_track_still_finds_it(tight_curve: Scene, offset: float) -> None:
+    """An INS-anchored trajectory runs beside its track by the INS's lateral error (lever
+    arm, drift): decimetres, beyond the first pass's 0.25 m. The ego track is then searched
+    as the nearest rail pair within EGO_SEARCH_M and found where it truly is, with a warning
+    saying how far the trajectory is off."""
+    from worker.preparation.tracks import EGO_SEARCH_M
+
+    assert abs(offset) < EGO_SEARCH_M
+    side = np.eye(4)
+    side[1, 3] = offset  # base y: left
+    poses = tight_curve.poses
+    beside = PoseTrack(poses.timestamps, poses.T @ side, poses.frame_idx)
+    res = find_tracks(tight_curve.cloud, beside)
+    assert res.ego is not None, res.warnings
+    e = _errors(res.ego, tight_curve.ego)
+    assert e["length"] > 60.0
+    assert _rms(e["lateral"]) < 0.03, _rms(e["lateral"])
+    assert abs(res.metrics["ego_search_shift_m"] + offset) < 0.05, res.metrics
+    assert any("to the " + ("right" if offset > 0 else "left") in w for w in res.warnings)

@@ -670,6 +670,82 @@ def _trajectory_reference(trajectory: PoseTrack) -> tuple[Centreline, F64]:
     return Centreline(pts), dense
 
 
+#: How far (m) the trajectory may run beside its own track's centre and still have it
+#: found: an INS-anchored trajectory carries the INS's lateral error (lever arm, drift:
+#: decimetres), which the first pass's tolerance does not cover. Neighbouring tracks' centres
+#: lie at least 3.5 m away, so a rail pair centred within this distance is the ego track.
+EGO_SEARCH_M = 1.5
+#: Lateral window (m) around each expected rail when scoring a shift, and the fewest rail
+#: points on each side for a shift to count.
+SHIFT_WINDOW_M = 0.05
+SHIFT_MIN_POINTS = 4
+#: A shift smaller than this (m) is left to the first pass (its tolerance is 0.25 m).
+SHIFT_APPLY_M = 0.15
+
+
+def _lateral_shift(rails: _RailPoints, ref: Centreline) -> tuple[float, int]:
+    """The lateral offset (m, left positive) of the rail pair nearest to ``ref`` along it,
+    within +-EGO_SEARCH_M, and the rail points on its weaker side (0: no pair).
+
+    Scores every centre offset c on a 1 cm grid by the rail points within SHIFT_WINDOW_M of
+    both c + HALF and c - HALF (the weaker side counts: both rails must be there), and
+    takes the best, the nearest to 0 among equals.
+    """
+    idx = rails.near(ref.point(np.arange(0.0, ref.length + 1.0, 1.0)), HALF + EGO_SEARCH_M + 0.3)
+    if len(idx) == 0:
+        return 0.0, 0
+    pr = ref.project(rails.p[idx])
+    inside = (pr.s > 1e-6) & (pr.s < ref.length - 1e-6)
+    lat = np.sort(pr.lateral[inside])
+    if len(lat) == 0:
+        return 0.0, 0
+    c = np.round(np.arange(-EGO_SEARCH_M, EGO_SEARCH_M + 1e-9, 0.01), 2)
+
+    def count(centre: F64) -> NDArray[np.int64]:
+        lo = np.searchsorted(lat, centre - SHIFT_WINDOW_M)
+        hi = np.searchsorted(lat, centre + SHIFT_WINDOW_M, side="right")
+        return (hi - lo).astype(np.int64)
+
+    score = np.minimum(count(c + HALF), count(c - HALF))
+    best = int(score.max())
+    if best == 0:
+        return 0.0, 0
+    ties = np.flatnonzero(score == best)
+    k = ties[np.argmin(np.abs(c[ties]))]
+    return float(c[k]), best
+
+
+#: A reference shorter than this (m) is continued straight ahead for the shift search: a
+#: slow train's trajectory covers a few metres where the lidars see little of the rails.
+SEARCH_MIN_LENGTH_M = 10.0
+
+
+def _search_reference(ref: Centreline) -> Centreline:
+    """``ref`` continued straight along its end tangent to SEARCH_MIN_LENGTH_M (a curve
+    of radius 190 m leaves a straight by 0.15 m over 7.5 m: inside the first pass's
+    tolerance), knots 1 m apart."""
+    if ref.length >= SEARCH_MIN_LENGTH_M:
+        return ref
+    s = np.arange(0.0, ref.length + 1e-9, 1.0)
+    pts = ref.point(s)
+    t = ref.tangent(np.array([ref.length]))[0]
+    extra = np.arange(1.0, SEARCH_MIN_LENGTH_M - ref.length + 1.0, 1.0)
+    ahead = ref.point(np.array([ref.length]))[0] + extra[:, None] * t
+    roll = np.concatenate(
+        [ref.roll(s), np.full(len(extra), float(ref.roll(np.array([ref.length]))[0]))]
+    )
+    return Centreline(np.vstack([pts, ahead]), roll)
+
+
+def _shifted(ref: Centreline, offset: float) -> Centreline:
+    """``ref`` moved ``offset`` m to its left (negative: right), knots 1 m apart."""
+    s = np.arange(0.0, ref.length + 1e-9, 1.0)
+    if s[-1] < ref.length - 1e-6:
+        s = np.append(s, ref.length)
+    pts = ref.point(s) + offset * _left_normal(ref.tangent(s))
+    return Centreline(pts, ref.roll(s))
+
+
 def _discover_seeds(
     rails: _RailPoints, ego: Centreline, exclude: NDArray[np.bool_], opt: FitOptions
 ) -> list[F64]:
@@ -742,7 +818,22 @@ def _fit_tracks(
     metrics: dict[str, float] = {}
     traj_ref, samples = _trajectory_reference(trajectory)
     region = (samples, opt.corridor_half_width, opt.lookahead)
-    ego_fit = _complete_track(rails, traj_ref, opt, [], region, clip_first=0.3)
+    # the trajectory may run beside its track (an INS-anchored one by the INS's lateral
+    # error): the nearest rail pair is the ego track; fit around it when it is clearly off
+    search = _search_reference(traj_ref)
+    shift, support = _lateral_shift(rails, search)
+    ego_fit = None
+    if support >= SHIFT_MIN_POINTS and abs(shift) > SHIFT_APPLY_M:
+        ego_fit = _complete_track(rails, _shifted(search, shift), opt, [], region, clip_first=0.3)
+        metrics["ego_search_shift_m"] = shift
+        if ego_fit is not None:
+            warnings.append(
+                f"the ego track was found {abs(shift):.2f} m to the "
+                f"{'left' if shift > 0 else 'right'} of the trajectory (the nearest rail "
+                "pair): poses or registration are off laterally"
+            )
+    if ego_fit is None:
+        ego_fit = _complete_track(rails, traj_ref, opt, [], region, clip_first=0.3)
     if ego_fit is None or ego_fit.length < opt.min_track_length:
         return [], None, np.zeros((0, 3)), metrics
     ego = ego_fit.centreline("0", ego=True)
