@@ -38,6 +38,13 @@ class BadRequest(ServiceError):
     status_code = 400
 
 
+class Forbidden(ServiceError):
+    """The request is understood and authenticated, but this service may not do it (a
+    folder outside the configured sequence roots)."""
+
+    status_code = 403
+
+
 class NotFound(ServiceError):
     status_code = 404
 

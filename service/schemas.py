@@ -21,8 +21,8 @@ Name = Annotated[str, Field(min_length=1, max_length=200, pattern=r"^[\w .:@+-]+
 #: NUL in text, which would be a 500), and the schema says so, so clients know.
 ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 Ident = Annotated[str, Field(min_length=1, max_length=64, pattern=ID_PATTERN)]
-#: A file system path: any characters but NUL (which no file system accepts).
-NO_NUL_PATTERN = r"^[^\x00]+$"
+#: An absolute POSIX path: any characters but NUL (which no file system accepts).
+ABSOLUTE_PATH_PATTERN = r"^/[^\x00]*$"
 CameraName = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_]+$")]
 
 
@@ -50,7 +50,7 @@ class SequenceRegister(_In):
     """Register a sequence folder the workers can read (absolute path)."""
 
     path: str = Field(
-        min_length=1, max_length=4096, pattern=NO_NUL_PATTERN,
+        min_length=1, max_length=4096, pattern=ABSOLUTE_PATH_PATTERN,
         examples=["/data/osdar23/1_calibration_1.1"],
     )  # fmt: skip
     name: Name | None = None
@@ -105,6 +105,18 @@ class AssetPublic(BaseModel):
 # ---------------------------------------------------------------------------- jobs
 class ObjectSpec(_In):
     """The obstacle: a built-in mesh or an uploaded asset, and its scale."""
+
+    # exactly one source, stated in the schema too (clients generate code from it)
+    model_config = ConfigDict(
+        json_schema_extra={
+            "oneOf": [
+                {"required": ["builtin"], "properties": {"builtin": {"type": "string"},
+                                                        "asset_id": {"type": "null"}}},
+                {"required": ["asset_id"], "properties": {"asset_id": {"type": "string"},
+                                                         "builtin": {"type": "null"}}},
+            ]
+        }
+    )  # fmt: skip
 
     builtin: BuiltinObject | None = Field(None, description="built-in obstacle name")
     asset_id: str | None = Field(

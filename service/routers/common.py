@@ -22,6 +22,9 @@ INVALID: dict[int | str, dict[str, Any]] = {
     422: {"model": ValidationProblem, "description": "What is wrong, and where"}
 }
 CONFLICT: dict[int | str, dict[str, Any]] = {409: {"model": Problem, "description": "Conflict"}}
+FORBIDDEN: dict[int | str, dict[str, Any]] = {
+    403: {"model": Problem, "description": "Outside what this service may read"}
+}
 BAD_REQUEST: dict[int | str, dict[str, Any]] = {
     400: {"model": Problem, "description": "A body that cannot be read (empty, not JSON)"}
 }
@@ -32,7 +35,7 @@ TOO_LARGE: dict[int | str, dict[str, Any]] = {
 
 def binary_body(media_types: list[str], description: str) -> dict[str, Any]:
     """``openapi_extra`` for a route that streams the raw request body."""
-    schema = {"type": "string", "format": "binary"}
+    schema = {"type": "string", "format": "binary", "minLength": 1}
     return {
         "requestBody": {
             "required": True,

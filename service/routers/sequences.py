@@ -14,6 +14,7 @@ from service.routers.common import (
     AUTH_ERRORS,
     BAD_REQUEST,
     CONFLICT,
+    FORBIDDEN,
     INVALID,
     NOT_FOUND,
     TOO_LARGE,
@@ -50,7 +51,7 @@ router = APIRouter(prefix="/sequences", tags=["sequences"], responses=AUTH_ERROR
     "",
     response_model=SequencePublic,
     status_code=status.HTTP_201_CREATED,
-    responses={**INVALID, **BAD_REQUEST},
+    responses={**INVALID, **BAD_REQUEST, **FORBIDDEN, **NOT_FOUND},
     summary="Register a sequence folder the workers can read",
 )
 def register_sequence(

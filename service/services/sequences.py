@@ -13,7 +13,7 @@ from osdar_platform.archive_safety import ArchiveLimits, UnsafeArchive, extract_
 from osdar_platform.models import ACTIVE_STATES, ApiKey, Job, Sequence, new_id
 from osdar_platform.settings import Settings
 from osdar_platform.store import ObjectStore
-from service.errors import Conflict, Invalid, NotFound
+from service.errors import Conflict, Forbidden, Invalid, NotFound
 from worker.orchestration.inspect import InspectionError, inspect_sequence
 
 
@@ -57,9 +57,9 @@ def register_sequence(
         raise Invalid("path must be absolute", loc=("body", "path"))
     folder = raw.resolve()
     if not _allowed(folder, settings):
-        raise Invalid("path is outside the folders this service may read", loc=("body", "path"))
+        raise Forbidden(f"{raw}: outside the folders this service may read (its sequence roots)")
     if not folder.is_dir():
-        raise Invalid(f"{raw}: no such folder", loc=("body", "path"))
+        raise NotFound(f"{raw}: no such folder")
     summary = _inspect(folder, ("body", "path"))
     seq = _row(
         owner=owner,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import re
 import subprocess
 import sys
 import tarfile
@@ -78,6 +79,28 @@ def test_openapi_documents_every_route(api: Api) -> None:
     assert {"sequence_id", "object", "placement"} <= set(body["required"])
 
 
+def test_openapi_states_what_the_service_checks(api: Api) -> None:
+    """What schemathesis' positive-data check found refused although schema-valid is now
+    in the schema: ids' characters, absolute paths, exactly one object source, non-empty
+    upload bodies, and the 403 / 404 of a registered path."""
+    from jsonschema import Draft202012Validator
+
+    spec = api.client.get("/v1/openapi.json").json()
+    schemas = spec["components"]["schemas"]
+    obj = Draft202012Validator(schemas["ObjectSpec"])
+    assert obj.is_valid({"builtin": "cow"}) and obj.is_valid({"asset_id": "a1"})
+    assert obj.is_valid({"builtin": "cow", "asset_id": None})
+    assert not obj.is_valid({}) and not obj.is_valid({"builtin": "cow", "asset_id": "a1"})
+    path = schemas["SequenceRegister"]["properties"]["path"]["pattern"]
+    assert re.fullmatch(path, "/data/seq") and not re.fullmatch(path, "data/seq")
+    assert schemas["JobCreate"]["properties"]["sequence_id"]["pattern"] == "^[A-Za-z0-9_-]{1,64}$"
+    register = spec["paths"]["/v1/sequences"]["post"]["responses"]
+    assert {"403", "404", "422"} <= set(register)
+    for route in ("/v1/assets", "/v1/sequences/upload"):
+        content = spec["paths"][route]["post"]["requestBody"]["content"]
+        assert all(c["schema"]["minLength"] == 1 for c in content.values())
+
+
 def test_registered_sequence_shows_frames_cameras_span(api: Api) -> None:
     r = api.client.get(f"/v1/sequences/{api.sequence_id}", headers=api.h())
     assert r.status_code == 200
@@ -90,13 +113,19 @@ def test_registered_sequence_shows_frames_cameras_span(api: Api) -> None:
 
 @pytest.mark.parametrize(
     ("path", "needle"),
-    [("relative/folder", "absolute"), ("/nonexistent/seq", "no such folder"), ("/tmp", "OSDaR23")],
+    [("relative/folder", "pattern '^/"), ("/tmp", "OSDaR23")],
 )
 def test_register_bad_folder_is_422_on_path(api: Api, path: str, needle: str) -> None:
+    """A path that is not absolute (the schema says so) or not a sequence: 422 on the field."""
     r = api.client.post("/v1/sequences", json={"path": path}, headers=api.h())
     assert r.status_code == 422, r.text
     (err,) = r.json()["detail"]
     assert err["loc"] == ["body", "path"] and needle in err["msg"]
+
+
+def test_register_a_missing_folder_is_404(api: Api) -> None:
+    r = api.client.post("/v1/sequences", json={"path": "/nonexistent/seq"}, headers=api.h())
+    assert r.status_code == 404 and "no such folder" in r.json()["detail"], r.text
 
 
 # ------------------------------------------------------------------------------ auth
@@ -598,13 +627,13 @@ def test_registered_paths_must_lie_under_the_configured_roots(
     api: Api, synth_sequence_dir: Path, tmp_path: Path
 ) -> None:
     from osdar_platform.models import ApiKey
-    from service.errors import Invalid
+    from service.errors import Forbidden
     from service.services.sequences import register_sequence
 
     with api.sessions() as session:
         owner = session.scalar(select(ApiKey).where(ApiKey.name == "alice"))
         elsewhere = api.settings.model_copy(update={"sequence_roots": [tmp_path]})
-        with pytest.raises(Invalid, match="outside the folders"):
+        with pytest.raises(Forbidden, match="outside the folders"):
             register_sequence(
                 session=session,
                 owner=owner,
@@ -613,7 +642,7 @@ def test_registered_paths_must_lie_under_the_configured_roots(
                 settings=elsewhere,
             )
         escape = str(tmp_path / ".." / synth_sequence_dir.parent.name / synth_sequence_dir.name)
-        with pytest.raises(Invalid, match="outside the folders"):
+        with pytest.raises(Forbidden, match="outside the folders"):
             register_sequence(
                 session=session, owner=owner, path=escape, name=None, settings=elsewhere
             )
