@@ -201,9 +201,7 @@ def _walk(obj: Any, seen: set[tuple[str, str]]) -> None:
 def ok(f: dict[str, Any]) -> bool:
     """No server error, no auth bypass, and every check of schemathesis passes."""
     return (
-        f["server_errors_5xx"] == 0
-        and f["auth_bypasses"] == 0
-        and f["schemathesis_exit_code"] == 0
+        f["server_errors_5xx"] == 0 and f["auth_bypasses"] == 0 and f["schemathesis_exit_code"] == 0
     )
 
 
