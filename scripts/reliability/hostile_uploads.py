@@ -51,104 +51,125 @@ def _detail(r: Any) -> str:
     return str(d)[:200]
 
 
+class Tally:
+    """What the scenario saw: every input's outcome, the jobs it made, the API's 5xx."""
+
+    def __init__(self) -> None:
+        self.outcomes: dict[str, dict[str, Any]] = {}
+        self.jobs: dict[str, str] = {}
+        self.five_xx = 0
+
+    def answered(self, r: Any) -> Any:
+        self.five_xx += r.status_code >= 500
+        return r
+
+    def submit(self, http: Any, name: str, upload: Any, spec: dict[str, Any] | None) -> None:
+        """Record an upload's answer and, when it was accepted, submit ``spec``."""
+        out: dict[str, Any] = {"upload": upload.status_code}
+        if upload.status_code == 201 and spec is not None:
+            j = self.answered(http.post("/v1/jobs", json=spec))
+            out["submit"] = j.status_code
+            if j.status_code == 201:
+                self.jobs[name] = j.json()["id"]
+            else:
+                out["reason"] = _detail(j)
+        else:
+            out["reason"] = _detail(upload)
+        self.outcomes[name] = out
+
+
+def _settings(workdir: Path, db: str, broker: str) -> Any:
+    return c.reliability_settings(
+        workdir / "var",
+        database_url=db,
+        broker_url=broker,
+        max_archive_members=10_000,
+        max_archive_total_bytes=40 * corpus.MiB,
+        max_sequence_upload_bytes=128 * corpus.MiB,
+        max_asset_upload_bytes=16 * corpus.MiB,
+        max_mesh_vertices=500_000,
+        task_time_limit_s=60,
+        task_soft_time_limit_s=45,
+    )
+
+
+def _archive_attacks(http: Any, data: Path, settings: Any, tally: Tally) -> tuple[int, int]:
+    """Upload every archive attack: (attacks, refused with a 4xx naming the problem and
+    nothing written)."""
+    attacks = corpus.archive_attacks(settings.max_archive_members)
+    refused = 0
+    for name, (blob, needle) in attacks.items():
+        before = _tree(data)
+        r = tally.answered(http.post("/v1/sequences/upload", content=blob))
+        new = sorted(_tree(data) - before)
+        good = 400 <= r.status_code < 500 and bool(re.search(needle, _detail(r))) and not new
+        refused += good
+        tally.outcomes[f"archive: {name}"] = {
+            "status": r.status_code,
+            "reason": _detail(r),
+            "new_files": new[:5],
+            "ok": good,
+        }
+    return len(attacks), refused
+
+
+def _mutated_inputs(
+    http: Any, workdir: Path, seq: Path, quick: bool, seed: int, tally: Tally
+) -> None:
+    """Upload mutated sequences and hostile meshes; submit a job for each accepted one."""
+    clean = http.post("/v1/sequences", json={"path": str(seq)}).json()["id"]
+    for name, mutate in corpus.sequence_mutations(quick, seed).items():
+        copy = workdir / "mut" / seq.name
+        shutil.rmtree(copy.parent, ignore_errors=True)
+        shutil.copytree(seq, copy, ignore=shutil.ignore_patterns("ground_truth"))
+        mutate(copy)
+        r = tally.answered(http.post("/v1/sequences/upload", content=corpus.tar_folder(copy)))
+        spec = c.job_spec(r.json()["id"]) if r.status_code == 201 else None
+        tally.submit(http, f"file: {name}", r, spec)
+    for name, (ft, blob) in corpus.mesh_corpus(quick, seed).items():
+        params = {"name": "m", "file_type": ft}
+        r = tally.answered(http.post("/v1/assets", params=params, content=blob))
+        spec = None
+        if r.status_code == 201:
+            spec = c.job_spec(clean, object={"asset_id": r.json()["id"], "scale": 1.0})
+        tally.submit(http, f"mesh: {name}", r, spec)
+
+
+def _wait_for_jobs(http: Any, settings: Any, concurrency: int, tally: Tally) -> float:
+    """Every job terminal within its time limit (+ queueing behind the others): the wait."""
+    t0 = time.monotonic()
+    budget = 90 + 40 * len(tally.jobs) / concurrency
+    rows = c.wait_terminal(settings, list(tally.jobs.values()), budget)
+    for name, jid in tally.jobs.items():
+        row = rows[jid]
+        took = None
+        if row.started_at and row.finished_at:
+            took = (row.finished_at - row.started_at).total_seconds()
+        tally.outcomes[name].update(
+            state=row.state.value, reason=row.error, seconds=took, deliveries=row.deliveries
+        )
+        tally.answered(http.get(f"/v1/jobs/{jid}"))
+    return time.monotonic() - t0
+
+
 def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
     seq = c.synth_sequence(workdir / "seq" / "fire_site_rel")
     evil_before = [p.exists() for p in EVIL]
+    tally = Tally()
     with c.pg_database() as db, c.redis_db() as broker:
-        settings = c.reliability_settings(
-            workdir / "var",
-            database_url=db,
-            broker_url=broker,
-            max_archive_members=10_000,
-            max_archive_total_bytes=40 * corpus.MiB,
-            max_sequence_upload_bytes=128 * corpus.MiB,
-            max_asset_upload_bytes=16 * corpus.MiB,
-            max_mesh_vertices=500_000,
-            task_time_limit_s=60,
-            task_soft_time_limit_s=45,
-        )
+        settings = _settings(workdir, db, broker)
         secret = c.new_api_key(settings)
         workers = c.Workers(settings, workdir / "worker.log", concurrency=2)
-        outcomes: dict[str, dict[str, Any]] = {}
-        five_xx = 0
         with c.ApiServer(settings) as api, api.client(secret, timeout=300) as http, workers:
             data = Path(settings.data_dir)
             for sub in ("sequences", "tmp"):  # made by the first upload; not the attack's
                 (data / sub).mkdir(parents=True, exist_ok=True)
-            # -- 1. the archive attack set
-            attacks = corpus.archive_attacks(settings.max_archive_members)
-            refused = 0
-            for name, (blob, needle) in attacks.items():
-                before = _tree(data)
-                r = http.post("/v1/sequences/upload", content=blob)
-                five_xx += r.status_code >= 500
-                after = _tree(data)
-                new = sorted(after - before)
-                good = (
-                    400 <= r.status_code < 500 and bool(re.search(needle, _detail(r))) and not new
-                )
-                refused += good
-                outcomes[f"archive: {name}"] = {
-                    "status": r.status_code,
-                    "reason": _detail(r),
-                    "new_files": new[:5],
-                    "ok": good,
-                }
-            # -- 2. mutated sequences, 3. hostile meshes
-            jobs: dict[str, str] = {}
-            clean = http.post("/v1/sequences", json={"path": str(seq)}).json()["id"]
-            for name, mutate in corpus.sequence_mutations(quick, seed).items():
-                copy = workdir / "mut" / seq.name
-                shutil.rmtree(copy.parent, ignore_errors=True)
-                shutil.copytree(seq, copy, ignore=shutil.ignore_patterns("ground_truth"))
-                mutate(copy)
-                r = http.post("/v1/sequences/upload", content=corpus.tar_folder(copy))
-                five_xx += r.status_code >= 500
-                out: dict[str, Any] = {"upload": r.status_code}
-                if r.status_code == 201:
-                    j = http.post("/v1/jobs", json=c.job_spec(r.json()["id"]))
-                    five_xx += j.status_code >= 500
-                    out["submit"] = j.status_code
-                    if j.status_code == 201:
-                        jobs[f"file: {name}"] = j.json()["id"]
-                    else:
-                        out["reason"] = _detail(j)
-                else:
-                    out["reason"] = _detail(r)
-                outcomes[f"file: {name}"] = out
-            for name, (ft, blob) in corpus.mesh_corpus(quick, seed).items():
-                r = http.post("/v1/assets", params={"name": "m", "file_type": ft}, content=blob)
-                five_xx += r.status_code >= 500
-                out = {"upload": r.status_code}
-                if r.status_code == 201:
-                    spec = c.job_spec(clean, object={"asset_id": r.json()["id"], "scale": 1.0})
-                    j = http.post("/v1/jobs", json=spec)
-                    five_xx += j.status_code >= 500
-                    out["submit"] = j.status_code
-                    if j.status_code == 201:
-                        jobs[f"mesh: {name}"] = j.json()["id"]
-                    else:
-                        out["reason"] = _detail(j)
-                else:
-                    out["reason"] = _detail(r)
-                outcomes[f"mesh: {name}"] = out
-            # every job terminal within its time limit (+ queueing behind the others)
-            t0 = time.monotonic()
-            budget = 90 + 40 * len(jobs) / workers.concurrency
-            rows = c.wait_terminal(settings, list(jobs.values()), budget)
-            for name, jid in jobs.items():
-                row = rows[jid]
-                took = None
-                if row.started_at and row.finished_at:
-                    took = (row.finished_at - row.started_at).total_seconds()
-                outcomes[name].update(
-                    state=row.state.value, reason=row.error, seconds=took, deliveries=row.deliveries
-                )
-                poll = http.get(f"/v1/jobs/{jid}")
-                five_xx += poll.status_code >= 500
-            waited = time.monotonic() - t0
+            n_attacks, refused = _archive_attacks(http, data, settings, tally)
+            _mutated_inputs(http, workdir, seq, quick, seed, tally)
+            waited = _wait_for_jobs(http, settings, workers.concurrency, tally)
             deaths = workers.deaths()
         tmp_left = list((Path(settings.data_dir) / "tmp").glob("*"))
+    outcomes = tally.outcomes
     states = [o.get("state") for o in outcomes.values() if "state" in o]
     failed = [o for o in outcomes.values() if o.get("state") == "FAILED"]
     refused_at_upload = [
@@ -156,15 +177,15 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
     ]
     limit = settings.task_time_limit_s
     return {
-        "archive_attacks": len(attacks),
+        "archive_attacks": n_attacks,
         "archive_attacks_refused_cleanly": refused,
         "evil_files_created": [
             str(p) for p, b in zip(EVIL, evil_before, strict=True) if p.exists() and not b
         ],
         "tmp_files_left": len(tmp_left),
-        "mutated_inputs": len(outcomes) - len(attacks),
+        "mutated_inputs": len(outcomes) - n_attacks,
         "refused_at_upload_or_submit_4xx": len(refused_at_upload),
-        "jobs": len(jobs),
+        "jobs": len(tally.jobs),
         "jobs_failed": len(failed),
         "jobs_succeeded_harmless_mutation": states.count("SUCCEEDED"),
         "jobs_not_terminal": sum(1 for s in states if s not in c.TERMINAL),
@@ -176,7 +197,7 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
             1 for o in outcomes.values() if (o.get("deliveries") or 0) > 1
         ),
         "wait_s": round(waited, 1),
-        "api_5xx": five_xx,
+        "api_5xx": tally.five_xx,
         "worker_deaths": deaths,
         "outcomes": outcomes,
     }
