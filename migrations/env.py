@@ -10,7 +10,9 @@ import logging
 
 from alembic import context
 
+from osdar_platform.db import make_engine
 from osdar_platform.models import Base
+from osdar_platform.settings import get_settings
 
 config = context.config
 target_metadata = Base.metadata
@@ -21,8 +23,6 @@ def _url() -> str:
     url = config.attributes.get("database_url")
     if url:
         return str(url)
-    from osdar_platform.settings import get_settings
-
     return str(get_settings().database_url)
 
 
@@ -54,8 +54,6 @@ def run_migrations_online() -> None:
     if connection is not None:
         _run(connection)
         return
-    from osdar_platform.db import make_engine
-
     engine = make_engine(_url())
     try:
         with engine.connect() as conn:

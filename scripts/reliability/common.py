@@ -36,7 +36,7 @@ import uvicorn
 from sqlalchemy import create_engine, select, text
 from sqlalchemy.engine import make_url
 
-from osdar_platform.db import session_scope
+from osdar_platform.db import _engine_for, session_scope
 from osdar_platform.keys import create_api_key
 from osdar_platform.migrate import upgrade
 from osdar_platform.models import Job, JobEvent
@@ -113,8 +113,6 @@ def pg_database(prefix: str = "osdar_rel") -> Iterator[str]:
         upgrade(database_url=rendered)
         yield rendered
     finally:
-        from osdar_platform.db import _engine_for
-
         _engine_for.cache_clear()
         with engine.begin() as conn:
             conn.execute(text(f'DROP SCHEMA IF EXISTS "{schema}" CASCADE'))

@@ -21,11 +21,13 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+import httpx
 import uvicorn
 from celery import Celery
 
 from scripts.reliability import common as c
 from service.app import create_app
+from worker.orchestration.embedded import free_port
 
 NAME = "schemathesis_run"
 #: The uploads' bodies are files (a mesh of the stated type, a sequence archive) whose
@@ -85,7 +87,7 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
             settings, celery_app=Celery("st", broker="memory://", set_as_current=False)
         )
         counter = StatusCounter(app)
-        port = __import__("worker.orchestration.embedded", fromlist=["free_port"]).free_port()
+        port = free_port()
         server = uvicorn.Server(
             uvicorn.Config(counter, host="127.0.0.1", port=port, log_level="error")
         )
@@ -94,8 +96,6 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
         c.wait_for(lambda: server.started, 30, "the API", every=0.05)
         url = f"http://127.0.0.1:{port}"
         try:
-            import httpx
-
             h = {"Authorization": f"Bearer {secret}"}
             with httpx.Client(base_url=url, headers=h, timeout=60) as http:
                 sid = http.post("/v1/sequences", json={"path": str(seq)}).json()["id"]

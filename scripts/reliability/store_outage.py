@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import httpx
 from moto.server import ThreadedMotoServer
 
 from osdar_platform.store import S3Store, store_from_url
@@ -116,8 +117,6 @@ class Watcher:
             self._stop.wait(0.3)
 
     def _poll_api(self, jid: str) -> None:
-        import httpx
-
         seen = self.seen
         try:  # the archive, then the state
             a = self.http.get(f"/v1/jobs/{jid}/archive", headers={"Range": "bytes=0-1"})
