@@ -1,7 +1,7 @@
 """The ``osdar-ar`` command line: the dispatcher.
 
 One module per command group, named after it: :mod:`.synth`, :mod:`.info`, :mod:`.demo`,
-:mod:`.serve` (``serve``, ``worker``), :mod:`.prepare`, :mod:`.augment`,
+:mod:`.serve` (``serve``, ``worker``), :mod:`.prepare`, :mod:`.augment`, :mod:`.campaign`,
 :mod:`.evaluate`, :mod:`.bench`, :mod:`.keys` (``keys``, ``migrate``). Each has its
 ``run(args)`` and imports the library it calls at its top; its arguments
 (``add_parser(sub)``) are in the same-named module of :mod:`.arguments`, which imports
@@ -36,6 +36,7 @@ import sys
 
 from worker.cli.arguments import augment as augment_arguments
 from worker.cli.arguments import bench as bench_arguments
+from worker.cli.arguments import campaign as campaign_arguments
 from worker.cli.arguments import demo as demo_arguments
 from worker.cli.arguments import evaluate as evaluate_arguments
 from worker.cli.arguments import info as info_arguments
@@ -55,6 +56,7 @@ ARGUMENTS = (
     serve_arguments,
     prepare_arguments,
     augment_arguments,
+    campaign_arguments,
     evaluate_arguments,
     bench_arguments,
     keys_arguments,
@@ -101,6 +103,10 @@ def _run(args: argparse.Namespace) -> int:
         from worker.cli import augment  # lazy: 1.8 s, 362 MB RSS (module docstring)
 
         return augment.run(args)
+    if group == "campaign":
+        from worker.cli import campaign  # lazy: the augmentation's imports (as augment)
+
+        return campaign.run(args)
     if group == "evaluate":
         from worker.cli import evaluate  # lazy: 1.9 s, 366 MB RSS (module docstring)
 
