@@ -241,3 +241,41 @@ def test_a_spec_file_that_is_not_yaml_or_json(tmp_path: Path) -> None:
     listy.write_text("- a\n- b\n")
     with pytest.raises(CampaignRunError, match="a campaign spec is a mapping"):
         load_campaign(listy)
+
+
+def test_an_interrupted_run_keeps_what_is_done_and_resumes(
+    base: Path,
+    seq: Path,
+    cache: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    import worker.campaign.run as run_module
+
+    spec = _write(base / "interrupted.yaml", _spec(seq, name="interrupted"))
+    out = base / "interrupted"
+    real = run_module.run_variant
+
+    def killed_at_the_second(v: Any, *args: Any, **kw: Any) -> Any:
+        if v.id == "v0001":
+            raise KeyboardInterrupt
+        return real(v, *args, **kw)
+
+    monkeypatch.setattr(run_module, "run_variant", killed_at_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        run_module.run_campaign(load_campaign(spec), spec, out, cache_dir=cache, workers=1)
+    doc, rows = _manifest(out)
+    assert [v["state"] for v in doc["variants"]] == ["done", "pending"]
+    assert [r["state"] for r in rows] == ["done", "pending"]
+    assert not (out / "records" / "v0001.json").exists() and not (out / ".work").exists()
+    # what a kill -9 inside the archive's writing would leave: a .partial and scratch
+    partial = out / "archives" / "v0001_fire_rock.tar.gz.partial"
+    partial.write_bytes(b"half")
+    (out / ".work" / "v0001").mkdir(parents=True)
+    monkeypatch.setattr(run_module, "run_variant", real)
+    capsys.readouterr()
+    assert _run([str(spec), "--out", str(out)], cache) == 0
+    assert "1 complete before, 1 made" in capsys.readouterr().out
+    assert not partial.exists() and not (out / ".work").exists()
+    doc, _ = _manifest(out)
+    assert [v["state"] for v in doc["variants"]] == ["done", "done"]

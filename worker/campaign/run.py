@@ -128,6 +128,7 @@ class CampaignResult:
     skipped: list[str]
     wall_s: float
     prepare_s: dict[str, float]
+    evaluate_s: dict[str, float] = field(default_factory=dict)
     manifest_json: Path | None = None
     manifest_csv: Path | None = None
     contact_sheet: Path | None = None
@@ -294,6 +295,17 @@ def complete_record(out_dir: Path, variant: Variant) -> VariantRecord | None:
     return rec
 
 
+def _forget(out_dir: Path, variant: Variant) -> None:
+    """Before a variant is (re)made: its old record and, when the old archive had another
+    name (the spec changed), that archive go; so does a half-written one (a killed run)."""
+    old = read_record(out_dir, variant)
+    record_path(out_dir, variant).unlink(missing_ok=True)
+    if old is not None and old.archive and old.archive != archive_name(variant):
+        (out_dir / old.archive).unlink(missing_ok=True)
+    partial = out_dir / archive_name(variant)
+    partial.with_name(partial.name + ".partial").unlink(missing_ok=True)
+
+
 # ---------------------------------------------------------------------------- a variant
 @dataclass
 class SequenceContext:
@@ -304,6 +316,7 @@ class SequenceContext:
     prepared: PreparedSequence
     cameras: list[str]
     work: Path
+    evaluation_s: float | None = None
     _evaluation: tuple[dict[str, Any], dict[str, Any]] | None = None
     _plot: Path | None = None
 
@@ -311,7 +324,8 @@ class SequenceContext:
         if self._evaluation is None:
             tic = time.perf_counter()
             self._evaluation = evaluate_sequence(self.folder, self.prepared, self.cameras)
-            log.info("evaluated %s in %.1f s", self.folder.name, time.perf_counter() - tic)
+            self.evaluation_s = time.perf_counter() - tic
+            log.info("evaluated %s in %.1f s", self.folder.name, self.evaluation_s)
             metrics, series = self._evaluation
             title = f"RPE and jitter, strategy {metrics.get('strategy')}"
             self.work.mkdir(parents=True, exist_ok=True)
@@ -371,6 +385,7 @@ def run_variant(
     A variant the augmentation refuses (AugmentError, PlacementError, a broken sequence)
     fails alone: its record says why. Anything else propagates.
     """
+    ctx.evaluation()  # once per sequence, not counted in the variant's seconds
     tic = time.perf_counter()
     work = out_dir / ".work" / variant.id
     shutil.rmtree(work, ignore_errors=True)
@@ -530,6 +545,7 @@ def run_campaign(
                 skipped.append(v.id)
                 log.info("variant %s complete already: skipped", v.id)
             else:
+                _forget(out_dir, v)
                 rec = run_variant(
                     v, contexts[v.sequence], out_dir, workers=workers, campaign=campaign
                 )
@@ -542,8 +558,16 @@ def run_campaign(
         # an interruption still leaves a manifest of what is done (the rest pending)
         for v in variants:
             records.setdefault(v.id, None)
+        evaluate_s = {k: c.evaluation_s for k, c in contexts.items() if c.evaluation_s is not None}
         result = CampaignResult(
-            spec, out_dir, variants, records, skipped, time.perf_counter() - t0, prepare_s
+            spec,
+            out_dir,
+            variants,
+            records,
+            skipped,
+            time.perf_counter() - t0,
+            prepare_s,
+            evaluate_s,
         )
         _write_outputs(result)
         shutil.rmtree(out_dir / ".work", ignore_errors=True)
@@ -560,6 +584,7 @@ def _write_outputs(result: CampaignResult) -> None:
         "skipped": len(result.skipped),
         "wall_s": round(result.wall_s, 3),
         "prepare_s": {k: round(v, 3) for k, v in result.prepare_s.items()},
+        "evaluate_s": {k: round(v, 3) for k, v in result.evaluate_s.items()},
     }
     result.manifest_json, result.manifest_csv = write_manifest(
         result.out_dir, result.spec, rows, summary, cameras=list(result.spec.job.cameras)

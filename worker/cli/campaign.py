@@ -51,9 +51,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{label}: {how} in {seconds:.1f} s")  # noqa: T201 - CLI output
 
     def on_variants(variants: list[Variant], warnings: list[str]) -> None:
-        nonlocal bar
-        for w in warnings:
-            print(f"  {w}")  # noqa: T201 - CLI output
+        nonlocal bar  # the warnings are logged by the expansion already
         if args.dry_run:
             for v in variants:
                 print(f"{v.id} {v.key} {v.sequence_label}: {_position(v)}")  # noqa: T201
