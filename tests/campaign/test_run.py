@@ -208,6 +208,7 @@ def test_a_dry_run_prints_the_variants_and_makes_nothing(
         ({"sequences": [{"id": "3f2a9c51"}]}, "sequences[0]: id '3f2a9c51' names a sequence"),
         ({"objects_per_sequence": 2}, "objects_per_sequence: 2 objects per variant cannot"),
         ({"draws": 0}, "draws: Input should be greater than or equal to 1"),
+        ({"obstacles": [{"asset_id": "a81b3c"}]}, "obstacles[0]: asset_id 'a81b3c' names a"),
         (
             {"placements": [{"zone": "track", "distance_m": [400, 500]}]},
             "placements[0] on fire: distance_m 400-500 m",

@@ -5,6 +5,8 @@ The recipe (:func:`run_campaign` reads it top to bottom)::
     load_campaign        the spec file validated (errors name the file and the field)
     sequence_folders     each sequence entry's folder (the CLI needs ``path``)
     check_runnable       what today's augmentation cannot render is refused up front
+                         (several objects per variant; uploaded assets, which live in
+                         the service's store)
     prepare_sequences    ONE preparation per sequence (the prepared cache), shared by all
                          of its variants
     expand_campaign      the deterministic expansion with resolved positions
@@ -193,6 +195,17 @@ def sequence_folders(
             )
         out[entry.key] = folder
     return out
+
+
+def check_assets(spec: CampaignSpec, spec_path: str | Path) -> None:
+    """Refuse uploaded assets: they live in the service's asset store, which an embedded
+    run does not have."""
+    for i, ob in enumerate(spec.obstacles):
+        if ob.asset_id is not None:
+            raise CampaignRunError(
+                f"{spec_path}: obstacles[{i}]: asset_id {ob.asset_id!r} names a mesh uploaded "
+                "to the service; `campaign run` has built-in obstacles only"
+            )
 
 
 def check_runnable(spec: CampaignSpec, spec_path: str | Path) -> None:
@@ -504,6 +517,7 @@ def run_campaign(
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     folders = sequence_folders(spec, spec_path, base)
+    check_assets(spec, spec_path)
     if not dry_run:
         check_runnable(spec, spec_path)
     prepared, prepare_s = prepare_sequences(
@@ -598,6 +612,7 @@ __all__ = [
     "SequenceContext",
     "VariantRecord",
     "archive_name",
+    "check_assets",
     "check_runnable",
     "complete_record",
     "expand_campaign",
