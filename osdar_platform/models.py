@@ -104,6 +104,9 @@ class ApiKey(Base):
     prefix: Mapped[str] = mapped_column(String(16))  # first characters, to recognise a key
     created_at: Mapped[datetime] = mapped_column(Timestamp, default=utcnow)
     revoked: Mapped[bool] = mapped_column(Boolean, default=False)
+    #: An operator key sees every key's jobs and campaigns on the dashboard, the workers,
+    #: the queue depth and the failure rate (granted by ``osdar-ar keys grant-operator``).
+    operator: Mapped[bool] = mapped_column(Boolean, default=False)
 
 
 class Sequence(Base):
@@ -160,6 +163,10 @@ class Job(Base):
         ForeignKey("sequences.id", ondelete="SET NULL"), index=True
     )
     idempotency_key: Mapped[str | None] = mapped_column(String(255), default=None)
+    #: The campaign this job is a variant of (None: a job submitted on its own).
+    campaign_id: Mapped[str | None] = mapped_column(
+        ForeignKey("campaigns.id", ondelete="CASCADE"), default=None, index=True
+    )
     spec: Mapped[dict[str, Any]] = mapped_column(JSON)
     state: Mapped[JobState] = mapped_column(
         Enum(JobState, native_enum=False, length=16, validate_strings=True),
@@ -201,3 +208,102 @@ class JobEvent(Base):
     data: Mapped[dict[str, Any] | None] = mapped_column(JSON, default=None)
 
     job: Mapped[Job] = relationship(back_populates="events")
+
+
+class CampaignState(enum.StrEnum):
+    """A campaign's life (docs/api.md#campaign-states)."""
+
+    PENDING = "PENDING"  # row written, the expansion not yet handed to the broker
+    EXPANDING = "EXPANDING"  # a worker prepares the sequences and expands the spec
+    EXPANDED = "EXPANDED"  # a dry run: the variants are there, nothing was queued
+    RUNNING = "RUNNING"  # the variants' jobs exist; some are not finished
+    SUCCEEDED = "SUCCEEDED"  # every variant SUCCEEDED
+    PARTIAL = "PARTIAL"  # some variants SUCCEEDED, others FAILED or were CANCELLED
+    FAILED = "FAILED"  # the expansion failed, or no variant SUCCEEDED
+    CANCELLED = "CANCELLED"  # cancelled before any variant SUCCEEDED
+
+    @property
+    def terminal(self) -> bool:
+        return self in CAMPAIGN_TERMINAL_STATES
+
+
+CAMPAIGN_TERMINAL_STATES = frozenset(
+    {
+        CampaignState.EXPANDED,
+        CampaignState.SUCCEEDED,
+        CampaignState.PARTIAL,
+        CampaignState.FAILED,
+        CampaignState.CANCELLED,
+    }
+)
+
+
+class Campaign(Base):
+    """A dataset campaign: a spec expanded (by a worker) into variants, each one job."""
+
+    __tablename__ = "campaigns"
+    __table_args__ = (
+        UniqueConstraint("owner_id", "idempotency_key", name="uq_campaigns_owner_idempotency_key"),
+        Index("ix_campaigns_owner_created", "owner_id", "created_at"),
+    )
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    owner_id: Mapped[int] = mapped_column(ForeignKey("api_keys.id", ondelete="CASCADE"))
+    name: Mapped[str] = mapped_column(String(200))
+    idempotency_key: Mapped[str | None] = mapped_column(String(255), default=None)
+    spec: Mapped[dict[str, Any]] = mapped_column(JSON)
+    dry_run: Mapped[bool] = mapped_column(Boolean, default=False)
+    state: Mapped[CampaignState] = mapped_column(
+        Enum(CampaignState, native_enum=False, length=16, validate_strings=True),
+        default=CampaignState.PENDING,
+    )
+    stage: Mapped[str | None] = mapped_column(String(64), default=None)
+    #: How often the expansion was delivered (a campaign that kills its workers fails).
+    deliveries: Mapped[int] = mapped_column(Integer, default=0)
+    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    error: Mapped[str | None] = mapped_column(Text, default=None)
+    #: The expansion's issues: [{level, where, message}].
+    issues: Mapped[list[Any] | None] = mapped_column(JSON, default=None)
+    variants_total: Mapped[int] = mapped_column(Integer, default=0)
+    #: Written when the campaign ends: counts per state, quality summary.
+    summary: Mapped[dict[str, Any] | None] = mapped_column(JSON, default=None)
+    manifest_json_key: Mapped[str | None] = mapped_column(Text, default=None)
+    manifest_csv_key: Mapped[str | None] = mapped_column(Text, default=None)
+    created_at: Mapped[datetime] = mapped_column(Timestamp, default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(Timestamp, default=utcnow, onupdate=utcnow)
+    expanded_at: Mapped[datetime | None] = mapped_column(Timestamp, default=None)
+    finished_at: Mapped[datetime | None] = mapped_column(Timestamp, default=None)
+
+    variants: Mapped[list[CampaignVariant]] = relationship(
+        back_populates="campaign",
+        cascade="all, delete-orphan",
+        order_by="CampaignVariant.index",
+    )
+
+
+class CampaignVariant(Base):
+    """One variant of a campaign (``worker.campaign.variant.Variant`` as JSON) and its job.
+
+    The expansion writes every variant and its job in one transaction, keyed by
+    (campaign, index): a redelivered expansion can never make a variant twice.
+    """
+
+    __tablename__ = "campaign_variants"
+
+    campaign_id: Mapped[str] = mapped_column(
+        ForeignKey("campaigns.id", ondelete="CASCADE"), primary_key=True
+    )
+    index: Mapped[int] = mapped_column(Integer, primary_key=True)
+    variant_id: Mapped[str] = mapped_column(String(16))  # "v0000"
+    key: Mapped[str] = mapped_column(String(32))  # the variant's digest
+    sequence_id: Mapped[str] = mapped_column(String(64))
+    sequence_label: Mapped[str] = mapped_column(String(255))
+    classes: Mapped[list[Any]] = mapped_column(JSON, default=list)
+    variant: Mapped[dict[str, Any]] = mapped_column(JSON)
+    job_id: Mapped[str | None] = mapped_column(
+        ForeignKey("jobs.id", ondelete="SET NULL"), default=None, unique=True
+    )
+    #: The variant's manifest row, written when the campaign ends (gauge, quality).
+    row: Mapped[dict[str, Any] | None] = mapped_column(JSON, default=None)
+
+    campaign: Mapped[Campaign] = relationship(back_populates="variants")

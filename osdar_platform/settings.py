@@ -89,6 +89,12 @@ class Settings(BaseSettings):
     rate_limit_burst: int = Field(100, gt=0)  # bucket size
     max_concurrent_jobs_per_key: int = Field(4, gt=0)  # QUEUED + RUNNING
     max_page_size: int = Field(100, gt=0)
+    #: With an S3 store, archive and manifest downloads answer 307 to a presigned URL
+    #: valid this long (after the API's ownership check); the local store streams.
+    download_url_ttl_s: int = Field(300, gt=0, le=7 * 24 * 3600)
+    #: ``POST /v1/campaigns?dry_run=true`` waits this long for the worker's expansion
+    #: (200 with the variants), then answers 202 and the client polls.
+    campaign_dry_run_wait_s: float = Field(20.0, ge=0, le=600)
 
     # --- workers -------------------------------------------------------------------------
     task_time_limit_s: int = Field(6 * 3600, gt=0)

@@ -261,6 +261,16 @@ class S3Store:
     def delete(self, key: str) -> None:
         self._call(self.client.delete_object, key, Bucket=self.bucket, Key=self._key(key))
 
+    def presigned_url(self, key: str, *, expires_s: int, filename: str | None = None) -> str:
+        """A URL that GETs the object (``Range`` honoured by S3) without credentials, for
+        ``expires_s`` seconds; ``filename`` sets the download's Content-Disposition."""
+        params: dict[str, Any] = {"Bucket": self.bucket, "Key": self._key(key)}
+        if filename:
+            params["ResponseContentDisposition"] = f'attachment; filename="{filename}"'
+        url = self._call(self.client.generate_presigned_url, key, ClientMethod="get_object",
+                         Params=params, ExpiresIn=int(expires_s))  # fmt: skip
+        return str(url)
+
     def list(self, prefix: str = "") -> list[str]:
         base = f"{self.prefix}/" if self.prefix else ""
         full, strip = base + prefix.lstrip("/"), len(base)
@@ -276,6 +286,17 @@ def _stream_body(body: Any) -> Iterator[bytes]:
         yield from body.iter_chunks(CHUNK)
     finally:
         body.close()
+
+
+def presigned_url(
+    store: ObjectStore, key: str, *, expires_s: int, filename: str | None = None
+) -> str | None:
+    """A short-lived direct download URL of ``key`` when the store can make one (S3), None
+    otherwise (the local store: the API streams the bytes itself)."""
+    make = getattr(store, "presigned_url", None)
+    if make is None:
+        return None
+    return str(make(key, expires_s=expires_s, filename=filename))
 
 
 def store_from_url(url: str, settings: Settings | None = None) -> ObjectStore:

@@ -21,7 +21,7 @@ from service.dashboard.mount import install_dashboard
 from service.deps import Dispatcher
 from service.errors import install_handlers
 from service.ratelimit import TokenBuckets
-from service.routers import assets, health, jobs, sequences
+from service.routers import assets, campaigns, health, jobs, sequences
 
 log = logging.getLogger(__name__)
 VERSION = "0.1.0"
@@ -73,7 +73,7 @@ def create_app(
     app.state.dispatcher = Dispatcher(sessions=app.state.sessions, celery_app=celery_app)
     install_handlers(app)
     v1 = APIRouter(prefix="/v1")
-    for module in (health, sequences, assets, jobs):
+    for module in (health, sequences, assets, jobs, campaigns):
         v1.include_router(module.router)
     app.include_router(v1)
     install_dashboard(app)

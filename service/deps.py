@@ -17,7 +17,13 @@ from osdar_platform.settings import Settings
 from osdar_platform.store import ObjectStore
 from service.errors import TooManyRequests, Unauthorized
 from service.ratelimit import TokenBuckets
-from worker.orchestration.queue import enqueue_job, request_cancel
+from worker.orchestration.queue import (
+    TASK_EXPAND_CAMPAIGN,
+    TASK_FINALIZE_CAMPAIGN,
+    enqueue_job,
+    request_cancel,
+    send_task,
+)
 
 
 @dataclass
@@ -32,6 +38,14 @@ class Dispatcher:
 
     def cancel(self, job_id: str) -> JobState | None:
         return request_cancel(job_id, sessions=self.sessions, app=self.celery_app)
+
+    def send_expand(self, campaign_id: str) -> None:
+        """A campaign's expansion (worker/campaign/service_expand.py)."""
+        send_task(TASK_EXPAND_CAMPAIGN, [campaign_id], app=self.celery_app)
+
+    def send_finalize(self, campaign_id: str) -> None:
+        """A campaign's manifest and end state (worker/campaign/service_finalize.py)."""
+        send_task(TASK_FINALIZE_CAMPAIGN, [campaign_id], app=self.celery_app)
 
 
 def _settings(request: Request) -> Settings:

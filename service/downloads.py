@@ -5,9 +5,9 @@ from __future__ import annotations
 import re
 from typing import Any, Literal
 
-from fastapi.responses import Response, StreamingResponse
+from fastapi.responses import RedirectResponse, Response, StreamingResponse
 
-from osdar_platform.store import ObjectNotFound, ObjectStore
+from osdar_platform.store import ObjectNotFound, ObjectStore, StoreError, presigned_url
 from service.errors import NotFound
 
 _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
@@ -64,9 +64,42 @@ def stream_object(
     )
 
 
+def download_object(
+    store: ObjectStore,
+    key: str,
+    *,
+    range_header: str | None,
+    media_type: str,
+    filename: str | None = None,
+    ttl_s: int,
+) -> Response:
+    """A download after the caller's ownership check: with a store that presigns (S3),
+    307 to a URL valid ``ttl_s`` seconds (the store serves the bytes and honours
+    ``Range``, so a client resumes there); otherwise the API streams (``Range``: 206)."""
+    try:
+        url = presigned_url(store, key, expires_s=ttl_s, filename=filename)
+    except StoreError:
+        url = None  # cannot sign (no credentials): stream instead
+    if url is None:
+        return stream_object(
+            store, key, range_header=range_header, media_type=media_type, filename=filename
+        )
+    return RedirectResponse(url, status_code=307, headers={"Cache-Control": "no-store"})
+
+
 #: OpenAPI description of a streamed download.
-def download_responses(media_type: str) -> dict[int | str, dict[str, Any]]:
-    return {
+def download_responses(
+    media_type: str, *, redirect: bool = False
+) -> dict[int | str, dict[str, Any]]:
+    """200 / 206 / 416 of a streamed download, and the 307 of :func:`download_object`."""
+    out: dict[int | str, dict[str, Any]] = {}
+    if redirect:
+        out[307] = {
+            "description": "With an S3 store: the object at a short-lived presigned URL "
+            "(`Location`; Range is honoured there)",
+            "headers": {"Location": {"schema": {"type": "string"}}},
+        }
+    return out | {
         200: {"content": {media_type: {"schema": {"type": "string", "format": "binary"}}}},
         206: {
             "description": "Partial content (Range)",

@@ -233,6 +233,7 @@ class JobPublic(BaseModel):
     stage: str | None
     progress: Progress
     sequence_id: str | None
+    campaign_id: str | None = Field(None, description="the campaign it is a variant of")
     spec: dict[str, Any]
     attempt: int
     cancel_requested: bool
@@ -259,6 +260,7 @@ class JobPublic(BaseModel):
             stage=job.stage,
             progress=Progress(done=job.progress_done, total=job.progress_total),
             sequence_id=job.sequence_id,
+            campaign_id=getattr(job, "campaign_id", None),
             spec=job.spec,
             attempt=job.attempt,
             cancel_requested=job.cancel_requested,

@@ -27,6 +27,11 @@ PACKAGES = ("geometry", "osdar_platform", "service", "worker", "renderer")
 #: packages on the way, whose ``__init__`` runs).
 SERVICE_MAY_IMPORT_FROM_WORKER = frozenset(
     {"worker", "worker.orchestration", "worker.orchestration.queue", "worker.orchestration.inspect"}
+) | frozenset({"worker.campaign", "worker.campaign.spec", "worker.campaign.variant"})
+#: The campaign spec and its variants: pydantic models the API validates a campaign with
+#: (worker/campaign/spec.py: "the spec can be checked where the pipeline is not installed").
+LIGHT_WORKER_MODULES = frozenset(
+    {"worker.campaign", "worker.campaign.spec", "worker.campaign.variant"}
 )
 
 LAZY_MARK = "lazy:"
@@ -277,6 +282,8 @@ def _is_pipeline(module: str) -> bool:
     top = _top(module)
     if top in ("geometry", "renderer"):
         return True
+    if module in LIGHT_WORKER_MODULES:
+        return False
     return top == "worker" and module != "worker" and not module.startswith("worker.orchestration")
 
 

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Header, Path, Query, Response, status
 
 from osdar_platform.models import JobState
 from service.deps import CurrentKey, DispatcherDep, SessionDep, SettingsDep, StoreDep
-from service.downloads import download_responses, stream_object
+from service.downloads import download_object, download_responses, stream_object
 from service.routers.common import (
     AUTH_ERRORS,
     BAD_REQUEST,
@@ -133,14 +133,15 @@ def job_events(job_id: JobId, key: CurrentKey, session: SessionDep) -> list[JobE
     "/{job_id}/archive",
     response_model=None,
     response_class=Response,
-    responses={**download_responses("application/x-tar"), **NOT_FOUND, **CONFLICT},
-    summary="Download the augmented sequence (streamed; Range supported)",
+    responses={**download_responses("application/x-tar", redirect=True), **NOT_FOUND, **CONFLICT},
+    summary="Download the augmented sequence (streamed with Range; S3: 307 to a presigned URL)",
 )
 def job_archive(
     job_id: JobId,
     key: CurrentKey,
     session: SessionDep,
     store: StoreDep,
+    settings: SettingsDep,
     range_header: RangeHeader = None,
 ) -> Response:
     store_key = svc.archive_key(session=session, owner=key, job_id=job_id)
@@ -148,12 +149,13 @@ def job_archive(
     media = "application/zip" if name.endswith(".zip") else "application/x-tar"
     if name.endswith((".tar.gz", ".tgz")):
         media = "application/gzip"
-    return stream_object(
+    return download_object(
         store,
         store_key,
         range_header=range_header,
         media_type=media,
         filename=f"osdar-ar-{job_id}-{name}",
+        ttl_s=settings.download_url_ttl_s,
     )
 
 

@@ -138,7 +138,11 @@ def create_job(
     active = session.scalar(
         select(func.count())
         .select_from(Job)
-        .where(Job.owner_id == owner.id, Job.state.in_(ACTIVE_STATES))
+        .where(
+            Job.owner_id == owner.id,
+            Job.state.in_(ACTIVE_STATES),
+            Job.campaign_id.is_(None),  # a campaign's variants queue behind each other
+        )
     )
     if active is not None and active >= settings.max_concurrent_jobs_per_key:
         raise TooManyRequests(

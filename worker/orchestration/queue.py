@@ -28,6 +28,10 @@ log = logging.getLogger(__name__)
 
 #: The Celery task that runs a job (a plain function in worker/orchestration/runner.py).
 TASK_RUN_JOB = "osdar_ar.run_job"
+#: The campaign tasks (plain functions in worker/campaign/service_expand.py and
+#: service_finalize.py): the expansion into variant jobs, and the manifest at the end.
+TASK_EXPAND_CAMPAIGN = "osdar_ar.campaign_expand"
+TASK_FINALIZE_CAMPAIGN = "osdar_ar.campaign_finalize"
 
 
 def _celery_app(app: Any) -> Any:
@@ -128,6 +132,11 @@ def request_cancel(
     return state
 
 
+def send_task(name: str, args: list[Any], *, task_id: str | None = None, app: Any = None) -> None:
+    """Send one task by name (the campaign tasks; raises what the broker raised)."""
+    _celery_app(app).send_task(name, args=args, task_id=task_id)
+
+
 def requeue_pending(
     *,
     older_than_s: float = 60.0,
@@ -154,4 +163,12 @@ def requeue_pending(
     return sent
 
 
-__all__ = ["TASK_RUN_JOB", "enqueue_job", "request_cancel", "requeue_pending"]
+__all__ = [
+    "TASK_EXPAND_CAMPAIGN",
+    "TASK_FINALIZE_CAMPAIGN",
+    "TASK_RUN_JOB",
+    "enqueue_job",
+    "request_cancel",
+    "requeue_pending",
+    "send_task",
+]

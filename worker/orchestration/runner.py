@@ -33,7 +33,7 @@ import shutil
 import tarfile
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -321,13 +321,22 @@ def _local_sequence(run: JobRun) -> Path:
     seq = run.info["sequence"]
     if seq is None:
         raise StageError("the job's sequence was deleted")
+    return sequence_folder(seq, run.settings, lambda: run.store)
+
+
+def sequence_folder(
+    seq: dict[str, Any], settings: Settings, store: Callable[[], ObjectStore]
+) -> Path:
+    """A sequence row's folder on this machine (``seq``: id, path, content_key): its
+    registered path, or its upload fetched from ``store()`` once (cached per sequence).
+    A job's fetch and a campaign's expansion both call this."""
     folder = Path(seq["path"])
     if folder.is_dir():
         return folder
     if not seq["content_key"]:
         raise StageError(f"sequence folder {folder} is not readable on this worker")
 
-    base = Path(run.settings.cache_dir) / "sequences" / str(seq["id"])
+    base = Path(settings.cache_dir) / "sequences" / str(seq["id"])
     marker = base / "root.txt"
     with key_lock(base.parent, f"sequence-{seq['id']}"):
         if marker.is_file():
@@ -335,8 +344,8 @@ def _local_sequence(run: JobRun) -> Path:
         shutil.rmtree(base, ignore_errors=True)
         base.mkdir(parents=True)
         archive = base / "source.archive"
-        run.store.get_file(seq["content_key"], archive)
-        result = extract_archive(archive, base / "tree", ArchiveLimits.from_settings(run.settings))
+        store().get_file(seq["content_key"], archive)
+        result = extract_archive(archive, base / "tree", ArchiveLimits.from_settings(settings))
         archive.unlink()
         root = result.root
         find_labels_file(root)  # a clear error now rather than in preparation
@@ -736,6 +745,7 @@ __all__ = [
     "prepare_for_job",
     "publish_job",
     "run_job_inline",
+    "sequence_folder",
     "start_job",
     "upload_and_publish",
 ]

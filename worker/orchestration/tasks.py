@@ -10,6 +10,11 @@ A stage that stops the job (cancelled, failed, superseded by a newer attempt) ra
 ``Ignore``: the message is acknowledged and the rest of the workflow is not sent. The job
 row already says why. Chunk tasks return a "stopped" marker instead, so that the chord
 always completes and its ``finish`` sees the stop at its own checkpoint.
+
+Campaigns (worker/campaign/service_expand.py, service_finalize.py): ``osdar_ar.
+campaign_expand`` prepares a campaign's sequences, expands it and makes its variant jobs;
+after a campaign job's publish, failure or cancel, its campaign is finalized when every
+variant is finished (``osdar_ar.campaign_finalize`` does the same when the API asks).
 """
 
 from __future__ import annotations
@@ -22,9 +27,11 @@ from celery import Task, chain, chord, shared_task
 from celery.exceptions import Ignore
 
 from osdar_platform.settings import get_settings
+from worker.campaign.service_expand import expand_campaign_stage
+from worker.campaign.service_finalize import finalize_after_job, finalize_campaign
 from worker.orchestration import runner, state
-from worker.orchestration.queue import TASK_RUN_JOB
-from worker.orchestration.state import JobStop
+from worker.orchestration.queue import TASK_EXPAND_CAMPAIGN, TASK_FINALIZE_CAMPAIGN, TASK_RUN_JOB
+from worker.orchestration.state import JobCancelled, JobFailed, JobStop
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +51,8 @@ TASK_NAMES = (
     TASK_EVALUATE,
     TASK_PACKAGE,
     TASK_PUBLISH,
+    TASK_EXPAND_CAMPAIGN,
+    TASK_FINALIZE_CAMPAIGN,
 )
 
 
@@ -64,7 +73,18 @@ def _stage(fn: Callable[_P, _R], *args: _P.args, **kwargs: _P.kwargs) -> _R:
         return fn(*args, **kwargs)
     except JobStop as stop:
         log.info("%s stopped the job: %s", getattr(fn, "__name__", fn), stop)
+        if isinstance(stop, (JobFailed, JobCancelled)) and args:
+            _after_job(str(args[0]))
         raise Ignore() from stop
+
+
+def _after_job(job_id: str) -> None:
+    """A job ended: finalize its campaign if it was the last variant (best effort; the
+    API asks again when it sees every variant finished)."""
+    try:
+        finalize_after_job(job_id, settings=get_settings())
+    except Exception:
+        log.exception("job %s: finalizing its campaign failed (the API will ask again)", job_id)
 
 
 def workflow(app: Any, job_id: str, attempt: int, chunks: list[list[int]]) -> Any:
@@ -135,7 +155,21 @@ def package(job_id: str, attempt: int) -> str:
 
 @shared_task(name=TASK_PUBLISH, base=JobTask)
 def publish(archive: str | None, job_id: str, attempt: int) -> str | None:
-    return _stage(runner.publish_job, job_id, archive, attempt=attempt)
+    key = _stage(runner.publish_job, job_id, archive, attempt=attempt)
+    _after_job(job_id)
+    return key
 
 
-__all__ = ["TASK_NAMES", "run_job", "workflow"]
+@shared_task(name=TASK_EXPAND_CAMPAIGN, base=JobTask)
+def campaign_expand(campaign_id: str) -> None:
+    """Prepare, expand and make the variant jobs of a campaign (service_expand.py)."""
+    expand_campaign_stage(campaign_id, settings=get_settings())
+
+
+@shared_task(name=TASK_FINALIZE_CAMPAIGN, base=JobTask)
+def campaign_finalize(campaign_id: str) -> None:
+    """The manifest and the final state once every variant is finished."""
+    finalize_campaign(campaign_id, settings=get_settings())
+
+
+__all__ = ["TASK_NAMES", "campaign_expand", "campaign_finalize", "run_job", "workflow"]

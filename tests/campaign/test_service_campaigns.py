@@ -1,0 +1,285 @@
+"""/v1/campaigns end to end on a tiny synthetic sequence (SQLite, local store): the API
+records and checks a campaign, the worker's expansion stage (the real function the task
+runs) prepares once, expands and makes the variant jobs, the jobs run inline (the real
+stages), the last one finalizes the campaign (manifest JSON + CSV in the store).
+
+Known answers: the dry run's variants are the embedded expansion's (same spec, same
+variants, byte for byte); a redelivered expansion makes no variant twice; every variant
+job reuses the campaign's one preparation; a failing variant fails alone (PARTIAL, its
+reason in its row); cancelling before the expansion commits makes nothing.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from sqlalchemy import func, select, update
+
+from osdar_platform.models import Campaign, CampaignState, Job, JobState
+from tests.conftest_service import Api, make_settings, memory_celery, sent_tasks
+from worker.campaign.expand import expand
+from worker.campaign.service_expand import expand_campaign_stage
+from worker.campaign.service_finalize import final_state, finalize_after_job
+from worker.campaign.spec import CampaignSpec
+from worker.campaign.variant import dump_variants
+from worker.orchestration.queue import TASK_EXPAND_CAMPAIGN, TASK_RUN_JOB
+from worker.orchestration.runner import run_job_inline
+from worker.preparation.prepare import prepare
+
+pytestmark = pytest.mark.gl
+
+SEQ = {"scene": "fire_site", "frames": 6, "scale": 0.15, "lidar_density": 0.2, "seed": 3}
+
+
+@pytest.fixture(scope="module")
+def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Api]:
+    from fastapi.testclient import TestClient
+
+    from osdar_platform.migrate import upgrade
+    from service.app import create_app
+    from worker.synth.generator import SynthConfig, generate
+
+    data = tmp_path_factory.mktemp("campaign_api")
+    generate(data / "fire_camp", SynthConfig(**SEQ))
+    url = f"sqlite:///{data}/osdar-ar.db"
+    upgrade(database_url=url)
+    settings = make_settings(data, url, environment="test", campaign_dry_run_wait_s=0.0)
+    app = create_app(settings, celery_app=memory_celery())
+    with TestClient(app) as client:
+        a = Api("sqlite", client, settings, app.state.sessions)
+        a.new_key("alice")
+        a.new_key("bob")
+        r = client.post("/v1/sequences", json={"path": str(data / "fire_camp")}, headers=a.h())
+        assert r.status_code == 201, r.text
+        a.sequence_id = r.json()["id"]
+        sent_tasks()
+        yield a
+    app.state.engine.dispose()
+
+
+def spec(api: Api, **kw: Any) -> dict[str, Any]:
+    base: dict[str, Any] = {
+        "name": "tiny",
+        "seed": 11,
+        "sequences": [{"id": api.sequence_id, "name": "fire"}],
+        "obstacles": [{"builtin": "person"}, {"builtin": "rock"}],
+        "placements": [{"zone": "track", "distance_m": [20, 45]}],
+        "job": {"cameras": ["rgb_center"], "lidar": True, "strategy": "auto"},
+    }
+    return {**base, **kw}
+
+
+def expand_now(api: Api, campaign_id: str) -> Any:
+    """What the ``osdar_ar.campaign_expand`` task does (the jobs sent to the memory broker)."""
+    return expand_campaign_stage(campaign_id, settings=api.settings, app=memory_celery())
+
+
+def campaign_jobs(api: Api, campaign_id: str) -> list[Job]:
+    with api.sessions() as s:
+        rows = s.scalars(select(Job).where(Job.campaign_id == campaign_id).order_by(Job.id))
+        return list(rows)
+
+
+# ------------------------------------------------------------------------------ checks
+@pytest.mark.parametrize(
+    ("change", "loc"),
+    [
+        ({"sequences": [{"path": "/data/x"}]}, ["body", "sequences", 0, "path"]),
+        ({"sequences": [{"id": "nope"}]}, ["body", "sequences", 0, "id"]),
+        ({"job": {"cameras": ["rgb_left"]}}, ["body", "job", "cameras", 0]),
+        ({"placements": [{"zone": "roof"}]}, ["body", "placements", 0, "rule", "zone"]),
+        ({"obstacles": [{"asset_id": "a1b2"}]}, ["body", "obstacles", 0, "asset_id"]),
+        ({"draws": 0}, ["body", "draws"]),
+    ],
+)
+def test_a_bad_campaign_is_a_422_naming_the_field(
+    api: Api, change: dict[str, Any], loc: list[Any]
+) -> None:
+    r = api.client.post("/v1/campaigns", json=spec(api, **change), headers=api.h())
+    assert r.status_code == 422, r.text
+    assert loc in [e["loc"] for e in r.json()["detail"]], r.json()
+    assert not sent_tasks()
+
+
+def test_another_keys_sequence_is_not_found_for_the_campaign(api: Api) -> None:
+    r = api.client.post("/v1/campaigns", json=spec(api), headers=api.h("bob"))
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["loc"] == ["body", "sequences", 0, "id"]
+
+
+# ------------------------------------------------------------------------------ dry run
+def test_a_dry_run_returns_the_embedded_expansion_and_queues_nothing(api: Api) -> None:
+    r = api.client.post("/v1/campaigns?dry_run=true", json=spec(api), headers=api.h())
+    assert r.status_code == 202, r.text  # the wait is 0 here: poll
+    cid = r.json()["id"]
+    assert r.headers["Location"] == f"/v1/campaigns/{cid}"
+    assert [t["task"] for t in sent_tasks()] == [TASK_EXPAND_CAMPAIGN]
+    out = expand_now(api, cid)
+    assert out.state == CampaignState.EXPANDED and out.sent == []
+    body = api.client.get(f"/v1/campaigns/{cid}", headers=api.h()).json()
+    assert body["state"] == "EXPANDED" and body["dry_run"]
+    assert [v["id"] for v in body["variants"]] == ["v0000", "v0001"]
+    assert all(v["job_id"] is None for v in body["variants"])
+    assert campaign_jobs(api, cid) == []
+    # the same variants as the embedded expansion on the same preparation
+    folder = Path(api.client.get(f"/v1/sequences/{api.sequence_id}", headers=api.h())
+                  .json()["path"])  # fmt: skip
+    prepared = prepare(folder, cache_dir=api.settings.prepared_cache_dir)
+    want = json.loads(dump_variants(expand(CampaignSpec.model_validate(spec(api)),
+                                           {api.sequence_id: prepared})))  # fmt: skip
+    got = [{k: v[k] for k in ("index", "id", "key", "objects")} for v in body["variants"]]
+    assert got == [{k: w[k] for k in ("index", "id", "key", "objects")} for w in want]
+    res = body["variants"][0]["objects"][0]["resolved"]
+    assert res["zone"] == "track" and 20.0 <= res["distance_first_view_m"] <= 45.0
+
+
+# ------------------------------------------------------------------------------ a campaign
+def test_a_campaign_runs_one_preparation_and_a_failing_variant_fails_alone(api: Api) -> None:
+    body = spec(api, name="partial")
+    h = api.h(**{"Idempotency-Key": "camp-1"})
+    r = api.client.post("/v1/campaigns", json=body, headers=h)
+    assert r.status_code == 201, r.text
+    cid = r.json()["id"]
+    # idempotent: the same key and spec is the same campaign; another spec a 409
+    again = api.client.post("/v1/campaigns", json=body, headers=h)
+    assert again.status_code == 200 and again.json()["id"] == cid
+    other = api.client.post("/v1/campaigns", json={**body, "seed": 12}, headers=h)
+    assert other.status_code == 409
+    assert [t["args"] for t in sent_tasks()] == [[cid]]
+
+    out = expand_now(api, cid)
+    assert out.state == CampaignState.RUNNING and out.created == 2 and len(out.sent) == 2
+    # a redelivered expansion (its worker killed after the commit) makes nothing twice
+    again_out = expand_now(api, cid)
+    assert again_out.created == 0
+    jobs = campaign_jobs(api, cid)
+    assert len(jobs) == 2
+    assert {t["task"] for t in sent_tasks()} == {TASK_RUN_JOB}
+    detail = api.client.get(f"/v1/campaigns/{cid}", headers=api.h()).json()
+    assert detail["state"] == "RUNNING" and detail["progress"]["variants"] == 2
+    by_variant = {v["id"]: v["job_id"] for v in detail["variants"]}
+    # the second variant fails (the test hook of the job machinery), the first succeeds
+    with api.sessions.begin() as s:
+        job = s.get(Job, by_variant["v0001"])
+        assert job is not None
+        job.spec = {**job.spec, "_test": {"fail_in": "finish"}}
+    for vid in ("v0000", "v0001"):
+        run_job_inline(by_variant[vid], settings=api.settings)
+        finalize_after_job(by_variant[vid], settings=api.settings)  # what the task does
+
+    detail = api.client.get(f"/v1/campaigns/{cid}", headers=api.h()).json()
+    assert detail["state"] == "PARTIAL", detail
+    assert detail["progress"]["succeeded"] == 1 and detail["progress"]["failed"] == 1
+    v0, v1 = detail["variants"]
+    assert v0["state"] == "SUCCEEDED" and v0["links"]["archive"] == f"/v1/jobs/{v0['job_id']}/archive"
+    assert v1["state"] == "FAILED" and v1["error"] and v1["row"]["error"] == v1["error"]
+    # one preparation: the campaign's expansion made it, both jobs reused it
+    for j in campaign_jobs(api, cid):
+        assert j.metrics is not None and j.metrics["preparation"]["reused"] is True, j.metrics
+    # the manifest, JSON and CSV, with the gauge and the AR quality of the variant made
+    m = api.client.get(detail["links"]["manifest_json"], headers=api.h())
+    assert m.status_code == 200
+    doc = m.json()
+    assert doc["summary"] == {"variants": 2, "done": 1, "failed": 1, "cancelled": 0,
+                              "state": "PARTIAL"}  # fmt: skip
+    row0 = doc["variants"][0]
+    assert row0["state"] == "done" and row0["job_id"] == v0["job_id"]
+    assert row0["gauge"] is not None and row0["archive_bytes"] > 0
+    assert row0["quality"]["rgb_center"]["bound_px_median"] is not None
+    assert doc["variants"][1]["state"] == "failed"
+    c = api.client.get(detail["links"]["manifest_csv"], headers=api.h())
+    rows = list(csv.DictReader(io.StringIO(c.text)))
+    assert [r["variant"] for r in rows] == ["v0000", "v0001"]
+    assert rows[0]["objects"] == "1" and rows[0]["class"] in ("person", "rock")
+    # Range on the manifest and on a variant's archive (the local store streams)
+    part = api.client.get(detail["links"]["manifest_json"], headers=api.h(Range="bytes=0-9"))
+    assert part.status_code == 206 and part.content == m.content[:10]
+    arch = api.client.get(v0["links"]["archive"], headers=api.h(Range="bytes=2-"))
+    assert arch.status_code == 206 and int(arch.headers["Content-Range"].split("/")[1]) > 2
+    # another key sees nothing of it
+    assert api.client.get(f"/v1/campaigns/{cid}", headers=api.h("bob")).status_code == 404
+    assert api.client.get(detail["links"]["manifest_csv"], headers=api.h("bob")).status_code == 404
+    # an ended campaign cannot be cancelled
+    assert api.client.post(f"/v1/campaigns/{cid}/cancel", headers=api.h()).status_code == 409
+
+
+def test_a_campaign_is_listed_with_its_progress(api: Api) -> None:
+    r = api.client.get("/v1/campaigns", headers=api.h())
+    assert r.status_code == 200
+    items = r.json()["items"]
+    assert items and all(set(i["progress"]) >= {"variants", "succeeded", "fraction"} for i in items)
+    assert api.client.get("/v1/campaigns", headers=api.h("bob")).json()["total"] == 0
+
+
+# ------------------------------------------------------------------------------ cancel
+def test_cancel_before_the_expansion_makes_nothing(api: Api) -> None:
+    r = api.client.post("/v1/campaigns", json=spec(api, name="cancel-early"), headers=api.h())
+    cid = r.json()["id"]
+    c = api.client.post(f"/v1/campaigns/{cid}/cancel", headers=api.h())
+    assert c.status_code == 202 and c.json()["state"] == "CANCELLED"
+    out = expand_now(api, cid)  # the expansion message arrives afterwards
+    assert out.state == CampaignState.CANCELLED and out.created == 0
+    assert campaign_jobs(api, cid) == []
+
+
+def test_cancel_a_running_campaign_cancels_its_variant_jobs(api: Api) -> None:
+    r = api.client.post("/v1/campaigns", json=spec(api, name="cancel-late"), headers=api.h())
+    cid = r.json()["id"]
+    expand_now(api, cid)
+    sent_tasks()
+    c = api.client.post(f"/v1/campaigns/{cid}/cancel", headers=api.h())
+    assert c.status_code == 202
+    assert {j.state for j in campaign_jobs(api, cid)} == {JobState.CANCELLED}
+    # the finalize task the API sent: the worker's function
+    from worker.campaign.service_finalize import finalize_campaign
+
+    assert finalize_campaign(cid, settings=api.settings) == CampaignState.CANCELLED
+    body = api.client.get(f"/v1/campaigns/{cid}", headers=api.h()).json()
+    assert body["state"] == "CANCELLED" and body["summary"]["cancelled"] == 2
+
+
+def test_a_campaign_whose_rule_cannot_be_placed_fails_with_the_issue(api: Api) -> None:
+    bad = spec(api, name="impossible",
+               placements=[{"zone": "platform", "distance_m": [20, 45]}])  # fmt: skip
+    cid = api.client.post("/v1/campaigns", json=bad, headers=api.h()).json()["id"]
+    out = expand_now(api, cid)
+    assert out.state == CampaignState.FAILED and out.created == 0
+    body = api.client.get(f"/v1/campaigns/{cid}", headers=api.h()).json()
+    assert body["state"] == "FAILED" and body["issues"] and "placements[0]" in body["error"]
+    assert campaign_jobs(api, cid) == []
+
+
+def test_final_state_of_the_variants() -> None:
+    S, F, C = JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED
+    assert final_state([S, S], False) == CampaignState.SUCCEEDED
+    assert final_state([S, F], False) == CampaignState.PARTIAL
+    assert final_state([S, C], True) == CampaignState.PARTIAL
+    assert final_state([F, C], True) == CampaignState.CANCELLED
+    assert final_state([F, F], False) == CampaignState.FAILED
+
+
+def test_campaign_jobs_do_not_count_against_the_per_key_job_limit(api: Api) -> None:
+    with api.sessions() as s:
+        n = s.scalar(select(func.count()).select_from(Campaign))
+    assert n and n > 0
+    settings = api.client.app.state.settings
+    with api.sessions.begin() as s:
+        s.execute(update(Job).where(Job.campaign_id.is_not(None)).values(state=JobState.QUEUED))
+        s.execute(update(Job).where(Job.campaign_id.is_(None)).values(state=JobState.CANCELLED))
+    limit, settings.max_concurrent_jobs_per_key = settings.max_concurrent_jobs_per_key, 1
+    try:
+        r = api.client.post("/v1/jobs", json=api.job_spec(), headers=api.h())
+        assert r.status_code == 201, r.text
+        r = api.client.post("/v1/jobs", json=api.job_spec(), headers=api.h())
+        assert r.status_code == 429, r.text  # the limit holds for jobs of their own
+    finally:
+        settings.max_concurrent_jobs_per_key = limit
+        with api.sessions.begin() as s:
+            s.execute(update(Job).where(Job.campaign_id.is_not(None))
+                      .values(state=JobState.CANCELLED))  # fmt: skip
