@@ -52,7 +52,7 @@ from geometry.camera import TOL, CameraModel, gl_projection
 from geometry.transforms import invert_T
 from renderer.gl_context import create_context
 from renderer.lighting import Lighting
-from renderer.mesh import ObjectMesh, ProxyMesh
+from renderer.mesh import Material, ObjectMesh, ProxyMesh
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +67,8 @@ SHADOW_MAP_MIN, SHADOW_MAP_MAX = 64, 2048
 SHADOW_MAX_LENGTH = 4.0  # ground shadow length at most this x the object's height (ROI)
 _BOUNDARY_SAMPLES = 96  # per edge, when mapping the ROI rectangle through the distortion
 _PROXY_ORIGIN_GRID = 10.0  # m
+TEXTURE_ANISOTROPY = 8.0
+_GL_SRGB8_ALPHA8 = 0x8C43
 
 
 # ---------------------------------------------------------------------------- shaders
@@ -104,14 +106,20 @@ uniform mat4 u_light;
 in vec3 in_pos;
 in vec3 in_nrm;
 in vec3 in_col;
+in vec2 in_uv;
+in vec4 in_tan;
 out vec3 v_pos;
 out vec3 v_nrm;
 out vec3 v_col;
 out vec3 v_light;
+out vec2 v_uv;
+out vec4 v_tan;
 void main() {
     v_pos = in_pos;
     v_nrm = in_nrm;
     v_col = in_col;
+    v_uv = in_uv;
+    v_tan = in_tan;
     v_light = (u_light * vec4(in_pos, 1.0)).xyz;
     gl_Position = u_mvp * vec4(in_pos, 1.0);
 }
@@ -129,27 +137,97 @@ uniform vec3 u_ground;
 uniform float u_near;
 uniform float u_log_far;
 uniform float u_self_bias;
+// material (renderer.mesh.Material)
+uniform sampler2D u_base_tex;    // sRGB texture: sampled values are linear
+uniform sampler2D u_normal_tex;
+uniform sampler2D u_mr_tex;
+uniform int u_has_base;
+uniform int u_has_normal;
+uniform int u_has_mr;
+uniform vec4 u_base_factor;
+uniform float u_normal_scale;
+uniform float u_roughness;
+uniform float u_metallic;
+uniform float u_alpha_cutoff;    // < 0: opaque
+uniform float u_triplanar;       // > 0: period (m) of position-mapped textures
+uniform int u_specular;          // 0: plain Lambertian
 in vec3 v_pos;
 in vec3 v_nrm;
 in vec3 v_col;
 in vec3 v_light;
+in vec2 v_uv;
+in vec4 v_tan;
 layout(location = 0) out vec4 f_col;
 layout(location = 1) out vec4 f_aux;
 """
     + _SHADOW_FN
     + """
+const float PI = 3.14159265;
+// A texture at this fragment: by UV, or by the object-space position seen along the
+// three axes, blended by the geometric normal (triplanar mapping).
+vec4 surface_tex(sampler2D t, vec3 ng) {
+    if (u_triplanar > 0.0) {
+        vec3 w = pow(abs(ng), vec3(4.0));
+        w /= (w.x + w.y + w.z + 1e-6);
+        vec3 p = v_pos / u_triplanar;
+        return w.x * texture(t, p.yz) + w.y * texture(t, p.xz) + w.z * texture(t, p.xy);
+    }
+    return texture(t, v_uv);
+}
 void main() {
     float z = 1.0 / gl_FragCoord.w;
     gl_FragDepth = log(z / u_near) / u_log_far;
     vec3 n = normalize(v_nrm);
-    vec3 nf = normalize(cross(dFdx(v_pos), dFdy(v_pos)));
-    if (dot(nf, n) < 0.0) nf = -nf;
-    if (dot(nf, n) < 0.8) n = nf;          // hard edge: the smooth normal is meaningless
-    if (dot(n, u_cam - v_pos) < 0.0) n = -n;  // back faces of open meshes
+    vec3 ng = normalize(cross(dFdx(v_pos), dFdy(v_pos)));
+    if (dot(ng, n) < 0.0) ng = -ng;
+    vec4 base = u_base_factor * vec4(v_col, 1.0);
+    if (u_has_base == 1) base *= surface_tex(u_base_tex, ng);
+    if (u_alpha_cutoff >= 0.0 && base.a < u_alpha_cutoff) discard;
+    if (dot(ng, n) < 0.8) n = ng;          // hard edge: the smooth normal is meaningless
+    if (u_has_normal == 1 && u_triplanar <= 0.0) {  // tangent-space normal map
+        vec3 t = v_tan.xyz - n * dot(n, v_tan.xyz);
+        if (dot(t, t) > 1e-12) {
+            t = normalize(t);
+            vec3 b = cross(n, t) * (v_tan.w < 0.0 ? -1.0 : 1.0);
+            vec3 tn = texture(u_normal_tex, v_uv).xyz * 2.0 - 1.0;
+            tn.xy *= u_normal_scale;
+            n = normalize(t * tn.x + b * tn.y + n * max(tn.z, 1e-3));
+        }
+    }
+    vec3 V = normalize(u_cam - v_pos);
+    if (dot(ng, V) < 0.0) n = -n;          // back faces of open meshes
     float lam = max(dot(n, u_sun), 0.0);
     float lit = lam > 0.0 ? 1.0 - shadow_at(v_light, u_self_bias) : 0.0;
     vec3 amb = mix(u_ground, u_sky, 0.5 + 0.5 * dot(n, u_up));
-    f_col = vec4(v_col * (amb + u_sun_rgb * lam * lit), 1.0);
+    vec3 albedo = base.rgb;
+    vec3 col;
+    if (u_specular == 0) {
+        col = albedo * (amb + u_sun_rgb * lam * lit);
+    } else {  // glTF metallic-roughness: GGX sun lobe, Schlick-Fresnel sky reflection
+        float rough = u_roughness, metal = u_metallic;
+        if (u_has_mr == 1) {
+            vec4 mr = surface_tex(u_mr_tex, ng);
+            rough *= mr.g;
+            metal *= mr.b;
+        }
+        vec3 f0 = mix(vec3(0.04), albedo, metal);
+        float nv = max(dot(n, V), 1e-4);
+        float a = max(rough * rough, 2e-3);
+        vec3 h = normalize(u_sun + V);
+        float nh = max(dot(n, h), 0.0), vh = max(dot(V, h), 0.0);
+        float d = nh * nh * (a * a - 1.0) + 1.0;
+        float D = a * a / (PI * d * d);
+        float k = 0.5 * a;
+        float G = (lam / (lam * (1.0 - k) + k)) * (nv / (nv * (1.0 - k) + k));
+        vec3 F = f0 + (1.0 - f0) * pow(1.0 - vh, 5.0);
+        vec3 brdf = D * G * F / max(4.0 * lam * nv, 1e-4);
+        vec3 fe = f0 + (max(vec3(1.0 - rough), f0) - f0) * pow(1.0 - nv, 5.0);
+        vec3 env = mix(u_ground, u_sky, 0.5 + 0.5 * dot(reflect(-V, n), u_up));
+        vec3 kd = (1.0 - metal) * (1.0 - fe);
+        col = kd * albedo * (amb + u_sun_rgb * lam * lit)
+            + PI * brdf * u_sun_rgb * lam * lit + fe * env;
+    }
+    f_col = vec4(col, 1.0);
     f_aux = vec4(z, 0.0, 0.0, 1.0);
 }
 """
@@ -260,6 +338,24 @@ class _Targets:
 
 
 @dataclass
+class _Surface:
+    """One material's faces in the index buffer (first index, index count) and its
+    textures on the GPU (None where the material has none)."""
+
+    material: Material
+    first: int
+    count: int
+    base: moderngl.Texture | None = None
+    normal: moderngl.Texture | None = None
+    mr: moderngl.Texture | None = None
+
+    def release(self) -> None:
+        for t in (self.base, self.normal, self.mr):
+            if t is not None:
+                t.release()
+
+
+@dataclass
 class _Upload:
     ref: object
     key: tuple
@@ -267,11 +363,14 @@ class _Upload:
     ibo: moderngl.Buffer
     vao: moderngl.VertexArray
     vao_sm: moderngl.VertexArray | None
+    surfaces: list[_Surface] = field(default_factory=list)
 
     def release(self) -> None:
         for o in (self.vao, self.vao_sm, self.vbo, self.ibo):
             if o is not None:
                 o.release()
+        for sf in self.surfaces:
+            sf.release()
 
 
 def vertex_normals(vertices: F64, faces: NDArray[np.int64]) -> F64:
@@ -445,26 +544,62 @@ class ObjectRenderer:
         for up in self._obj_cache:
             if up.ref is obj and up.key == key:
                 return up
-        nrm = vertex_normals(obj.vertices, obj.faces)
+        n = len(obj.vertices)
+        nrm = obj.normals if obj.normals is not None else vertex_normals(obj.vertices, obj.faces)
+        uv = obj.uv if obj.uv is not None else np.zeros((n, 2), np.float32)
+        tan = obj.tangents if obj.tangents is not None else np.tile([1.0, 0, 0, 1.0], (n, 1))
         data = np.concatenate(
-            [obj.vertices.astype(np.float32), nrm.astype(np.float32), obj.colors], axis=1
-        )
+            [obj.vertices.astype(np.float32), nrm.astype(np.float32), obj.colors,
+             uv.astype(np.float32), tan.astype(np.float32)], axis=1,
+        )  # fmt: skip
+        mats, face_mat = obj.surface
+        order = np.argsort(face_mat, kind="stable")  # faces grouped by material
+        counts = np.bincount(face_mat, minlength=len(mats))
         vbo = self.ctx.buffer(np.ascontiguousarray(data, np.float32).tobytes())
-        ibo = self.ctx.buffer(obj.faces.astype(np.uint32).tobytes())
+        ibo = self.ctx.buffer(obj.faces[order].astype(np.uint32).tobytes())
         vao = self.ctx.vertex_array(
             self._prog_obj,
-            [(vbo, "3f 3f 3f", "in_pos", "in_nrm", "in_col")],
+            [(vbo, "3f 3f 3f 2f 4f", "in_pos", "in_nrm", "in_col", "in_uv", "in_tan")],
             index_buffer=ibo,
             index_element_size=4,
         )
         vao_sm = self.ctx.vertex_array(
-            self._prog_sm, [(vbo, "3f 24x", "in_pos")], index_buffer=ibo, index_element_size=4
+            self._prog_sm, [(vbo, "3f 48x", "in_pos")], index_buffer=ibo, index_element_size=4
         )
-        up = _Upload(obj, key, vbo, ibo, vao, vao_sm)
+        surfaces = []
+        first = 0
+        for m, c in zip(mats, counts, strict=True):
+            if c:
+                surfaces.append(_Surface(
+                    m, 3 * first, 3 * int(c),
+                    self._texture(m.base_color_texture, srgb=True),
+                    self._texture(m.normal_texture, srgb=False),
+                    self._texture(m.metallic_roughness_texture, srgb=False),
+                ))  # fmt: skip
+            first += int(c)
+        up = _Upload(obj, key, vbo, ibo, vao, vao_sm, surfaces)
         self._obj_cache.append(up)
         if len(self._obj_cache) > 4:
             self._obj_cache.pop(0).release()
         return up
+
+    def _texture(self, img: NDArray[np.uint8] | None, *, srgb: bool) -> moderngl.Texture | None:
+        """A mipmapped, repeating texture of an (h, w, 3|4) uint8 image (row 0 = v 0);
+        ``srgb``: stored as GL_SRGB8_ALPHA8, so the sampler returns linear values and
+        filtering and mipmaps average in linear light."""
+        if img is None:
+            return None
+        rgba = img if img.shape[2] == 4 else np.dstack([img, np.full(img.shape[:2], 255, np.uint8)])
+        h, w = rgba.shape[:2]
+        tex = self.ctx.texture(
+            (w, h), 4, np.ascontiguousarray(rgba).tobytes(),
+            internal_format=_GL_SRGB8_ALPHA8 if srgb else None,
+        )  # fmt: skip
+        tex.repeat_x = tex.repeat_y = True
+        tex.build_mipmaps()
+        tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        tex.anisotropy = TEXTURE_ANISOTROPY
+        return tex
 
     def _upload_proxies(self, proxies: ProxyMesh, origin: F64) -> _Upload:
         key = (id(proxies), len(proxies.vertices), len(proxies.faces), tuple(origin))
@@ -738,7 +873,32 @@ class ObjectRenderer:
         pg["u_log_far"].value = depth.log_far
         pg["u_self_bias"].value = 2.0 * texel
         self._set_shadow_uniforms(pg, depth.sm_tex, depth.sm_size)
-        up_o.vao.render(moderngl.TRIANGLES)
+        for sf in up_o.surfaces:
+            self._set_material(pg, sf)
+            up_o.vao.render(moderngl.TRIANGLES, vertices=sf.count, first=sf.first)
+
+    def _set_material(self, pg: moderngl.Program, sf: _Surface) -> None:
+        """Material uniforms and textures (units 1-3; unit 0 is the shadow map)."""
+        m = sf.material
+        vals: dict[str, object] = {
+            "u_base_factor": tuple(float(x) for x in m.base_color),
+            "u_normal_scale": float(m.normal_scale),
+            "u_roughness": float(m.roughness),
+            "u_metallic": float(m.metallic),
+            "u_alpha_cutoff": -1.0 if m.alpha_cutoff is None else float(m.alpha_cutoff),
+            "u_triplanar": 0.0 if m.triplanar_m is None else float(m.triplanar_m),
+            "u_specular": 1 if m.specular else 0,
+        }
+        for unit, (name, tex) in enumerate(
+            (("base", sf.base), ("normal", sf.normal), ("mr", sf.mr)), start=1
+        ):
+            vals[f"u_has_{name}"] = 0 if tex is None else 1
+            vals[f"u_{name}_tex"] = unit
+            if tex is not None:
+                tex.use(unit)
+        for k, v in vals.items():
+            if k in pg:  # the GLSL compiler drops unused uniforms
+                pg[k].value = v
 
     def _draw_proxies(
         self,

@@ -69,12 +69,15 @@ def simplify(mesh: ObjectMesh, target_faces: int) -> ObjectMesh:
     Returns
     -------
     ObjectMesh with <= ~target_faces faces; colours and reflectivity of each new vertex
-    from the nearest original vertex; meta copied with ``lod_faces`` set.
+    from the nearest original vertex; meta copied with ``lod_faces`` set. A mesh with
+    UVs (textured) is returned as a copy, undecimated. Materials: a single-material
+    mesh keeps its material (e.g. a triplanar procedural texture).
     """
     target = max(int(target_faces), 4)
-    if len(mesh.faces) <= target:
-        return ObjectMesh(mesh.vertices.copy(), mesh.faces.copy(), mesh.colors.copy(),
-                          mesh.reflectivity.copy(), mesh.name, dict(mesh.meta))  # fmt: skip
+    if len(mesh.faces) <= target or mesh.uv is not None:
+        # Textured meshes keep their geometry: decimation would tear the UV seams, and
+        # their detail is in the texture (mipmapped), not in the face count.
+        return mesh.with_vertices(mesh.vertices.copy())
     o3m = o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector(mesh.vertices),
         o3d.utility.Vector3iVector(mesh.faces.astype(np.int32)),
@@ -88,7 +91,18 @@ def simplify(mesh: ObjectMesh, target_faces: int) -> ObjectMesh:
     meta = dict(mesh.meta)
     meta["lod_faces"] = len(f)
     logger.debug("simplify %s: %d -> %d faces", mesh.name, len(mesh.faces), len(f))
-    return ObjectMesh(v, f, mesh.colors[nearest], mesh.reflectivity[nearest], mesh.name, meta)
+    mats, fm = mesh.surface
+    colors = mesh.colors
+    if len(np.unique(fm)) <= 1:
+        keep = [mats[int(fm[0]) if len(fm) else 0]]
+    else:  # several untextured materials: their base colours baked into the vertices
+        vm = np.zeros(len(mesh.vertices), np.int64)
+        vm[mesh.faces[:, 0]] = fm
+        colors = colors * np.stack([m.base_color[:3] for m in mats])[vm].astype(np.float32)
+        keep = []
+    return ObjectMesh(
+        v, f, colors[nearest], mesh.reflectivity[nearest], mesh.name, meta, materials=keep
+    )
 
 
 # --------------------------------------------------------------------------------------

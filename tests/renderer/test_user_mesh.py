@@ -31,7 +31,10 @@ def to_bytes(mesh: trimesh.Trimesh, ft: str) -> bytes:
 @pytest.mark.parametrize("ft", ["glb", "obj", "ply"])
 def test_round_trip_from_bytes(ft: str) -> None:
     m = load_user_mesh(to_bytes(colored_box(offset=(5.0, -3.0, 7.0)), ft), ft, name="crate")
-    np.testing.assert_allclose(m.size, EXTENTS, atol=1e-6)
+    # glTF is +Y up with its front +Z (its z -> our x, x -> y, y -> z); OBJ/PLY +Z up
+    want = EXTENTS[[2, 0, 1]] if ft == "glb" else EXTENTS
+    np.testing.assert_allclose(m.size, want, atol=1e-6)
+    assert m.meta["up"] == ("y" if ft == "glb" else "z")
     assert m.name == "crate" and m.meta["source"] == ft
     assert abs(m.vertices[:, 2].min()) < 1e-12  # standing on the ground
     lo, hi = m.bounds
@@ -58,7 +61,7 @@ def test_default_grey_and_up_axis() -> None:
 def test_gltf_data_uri_ok_external_uri_refused() -> None:
     scene = trimesh.Scene(colored_box())
     embedded = export_gltf(scene, embed_buffers=True)["model.gltf"]
-    m = load_user_mesh(embedded, "gltf")
+    m = load_user_mesh(embedded, "gltf", up="z")
     np.testing.assert_allclose(m.size, EXTENTS, atol=1e-6)
 
     external = export_gltf(scene)["model.gltf"]  # buffers in side files
@@ -96,7 +99,7 @@ def test_garbage_refused(ft: str) -> None:
 def test_bad_arguments_and_truncated_files() -> None:
     data = to_bytes(colored_box(), "glb")
     with pytest.raises(MeshError, match="unsupported"):
-        load_user_mesh(data, "stl")
+        load_user_mesh(data, "fbx")
     with pytest.raises(MeshError, match="up must be"):
         load_user_mesh(data, "glb", up="w")
     with pytest.raises(MeshError, match="scale"):
@@ -139,3 +142,60 @@ def test_inward_faces_flipped() -> None:
     m = load_user_mesh(to_bytes(inv, "ply"), "ply")
     assert m.meta["flipped"]
     assert trimesh.Trimesh(m.vertices, m.faces).volume > 0
+
+
+# ----------------------------------------------------------------- OBJ + MTL archives
+def obj_quad_archive(kind: str, mtl_map: str = "tex/check.png", extra: dict | None = None) -> bytes:
+    """An OBJ quad (2 x 2 m, facing +x, z up) with an MTL and a PNG checkerboard."""
+    import io as _io
+    import tarfile
+    import zipfile
+
+    from PIL import Image
+
+    from tests.renderer.gltf_build import checkerboard
+
+    obj = (
+        "mtllib quad.mtl\nv 0 -1 0\nv 0 1 0\nv 0 1 2\nv 0 -1 2\n"
+        "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl checks\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n"
+    )
+    mtl = f"newmtl checks\nKd 1 1 1\nmap_Kd {mtl_map}\n"
+    png = _io.BytesIO()
+    Image.fromarray(checkerboard(n=2, px=8, lo=0, hi=255)).save(png, format="PNG")
+    files = {"model/quad.obj": obj.encode(), "model/quad.mtl": mtl.encode(),
+             "model/tex/check.png": png.getvalue(), **(extra or {})}  # fmt: skip
+    buf = _io.BytesIO()
+    if kind == "zip":
+        with zipfile.ZipFile(buf, "w") as z:
+            for k, v in files.items():
+                z.writestr(k, v)
+    else:
+        with tarfile.open(fileobj=buf, mode="w:gz") as t:
+            for k, v in files.items():
+                info = tarfile.TarInfo(k)
+                info.size = len(v)
+                t.addfile(info, _io.BytesIO(v))
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("kind", ["zip", "tar.gz"])
+def test_obj_mtl_texture_archive(kind: str) -> None:
+    m = load_user_mesh(obj_quad_archive(kind), kind, name="sign")
+    assert m.meta["source"] == "obj" and m.meta["color_source"] == "texture" and m.textured
+    tex = m.materials[0].base_color_texture
+    assert tex.shape == (16, 16, 4)
+    # OBJ's v is up the image, ours (glTF) down: the vertex at the quad's top-left
+    # (y = +1, z = 2 after re-centring: the file's vt 1 1) samples the image's top row
+    top_right = np.argmax(m.vertices[:, 1] + m.vertices[:, 2])
+    np.testing.assert_allclose(m.uv[top_right], [1.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(m.size, [0.0, 2.0, 2.0], atol=1e-9)  # +Z up kept for OBJ
+
+
+def test_archive_refusals() -> None:
+    with pytest.raises(MeshError, match="not a file inside the upload"):
+        load_user_mesh(obj_quad_archive("zip", mtl_map="../../../../etc/hostname"), "zip")
+    two = obj_quad_archive("zip", extra={"model/other.ply": b"ply\n"})
+    with pytest.raises(MeshError, match="exactly one mesh file"):
+        load_user_mesh(two, "zip")
+    with pytest.raises(MeshError, match="archive refused"):
+        load_user_mesh(b"PK\x03\x04 not really a zip", "zip")
