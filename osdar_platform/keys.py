@@ -30,13 +30,21 @@ def hash_secret(secret: str, pepper: str) -> str:
     return hmac.new(pepper.encode(), secret.encode(), hashlib.sha256).hexdigest()
 
 
-def create_api_key(*, session: Session, name: str, pepper: str) -> tuple[ApiKey, str]:
-    """Add a key (flushed, not committed); returns the row and the secret (shown once)."""
+def create_api_key(
+    *, session: Session, name: str, pepper: str, operator: bool = False
+) -> tuple[ApiKey, str]:
+    """Add a key (flushed, not committed); returns the row and the secret (shown once).
+    ``operator``: the dashboard shows it everyone's jobs and campaigns and the workers."""
     name = name.strip()
     if not name or len(name) > 200:
         raise ValueError("key name must be 1..200 characters")
     secret = generate_secret()
-    row = ApiKey(name=name, key_hash=hash_secret(secret, pepper), prefix=secret[:PREFIX_CHARS])
+    row = ApiKey(
+        name=name,
+        key_hash=hash_secret(secret, pepper),
+        prefix=secret[:PREFIX_CHARS],
+        operator=operator,
+    )
     session.add(row)
     session.flush()
     return row, secret
@@ -57,4 +65,13 @@ def revoke_api_key(*, session: Session, key_id: int) -> bool:
     if row is None:
         return False
     row.revoked = True
+    return True
+
+
+def set_operator(*, session: Session, key_id: int, operator: bool = True) -> bool:
+    """Grant (or take away) the operator role; False when there is no such key."""
+    row = session.get(ApiKey, key_id)
+    if row is None:
+        return False
+    row.operator = operator
     return True

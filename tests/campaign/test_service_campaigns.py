@@ -283,3 +283,93 @@ def test_campaign_jobs_do_not_count_against_the_per_key_job_limit(api: Api) -> N
         with api.sessions.begin() as s:
             s.execute(update(Job).where(Job.campaign_id.is_not(None))
                       .values(state=JobState.CANCELLED))  # fmt: skip
+
+
+# ------------------------------------------------------------------------------ the CLI
+@pytest.fixture(scope="module")
+def live_url(api: Api) -> Iterator[str]:
+    """The same app under uvicorn on loopback (the CLI speaks real HTTP to it)."""
+    import threading
+    import time
+
+    import uvicorn
+
+    from worker.orchestration.embedded import free_port
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(api.client.app, host="127.0.0.1", port=port,
+                                           log_level="warning", lifespan="off"))  # fmt: skip
+    thread = threading.Thread(target=server.run, name="campaign-api", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
+        time.sleep(0.05)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(10)
+
+
+def test_cli_submit_resolves_paths_and_download_resumes(
+    api: Api, live_url: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import yaml
+
+    from worker.cli import main
+
+    folder = api.client.get(f"/v1/sequences/{api.sequence_id}", headers=api.h()).json()["path"]
+    body = spec(api, name="cli", obstacles=[{"builtin": "cow"}])
+    body["sequences"] = [{"path": folder, "name": "fire"}]
+    body["placements"] = [{"zone": "track", "distance_m": [20, 45], "sequences": [folder]}]
+    spec_file = tmp_path / "cli.yaml"
+    spec_file.write_text(yaml.safe_dump(body))
+    common = ["--url", live_url, "--key", api.keys["alice"]]
+    sent_tasks()
+    assert main(["campaign", "submit", str(spec_file), *common]) == 0
+    cid = capsys.readouterr().out.strip().splitlines()[-1]
+    row = api.client.get(f"/v1/campaigns/{cid}", headers=api.h()).json()
+    # the path was resolved to the key's registered sequence, in the placement filter too
+    assert row["spec"]["sequences"][0]["id"] == api.sequence_id
+    assert row["spec"]["placements"][0]["sequences"] == [api.sequence_id]
+    # a retried submit is the same campaign (the Idempotency-Key is the resolved spec's)
+    assert main(["campaign", "submit", str(spec_file), *common]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == cid
+    assert [t["args"] for t in sent_tasks()] == [[cid]]
+    # bob has no such sequence: the CLI registers the folder for him
+    assert main(["campaign", "submit", str(spec_file), "--url", live_url, "--key",
+                 api.keys["bob"]]) == 0  # fmt: skip
+    bob_cid = capsys.readouterr().out.strip().splitlines()[-1]
+    bob = api.client.get(f"/v1/campaigns/{bob_cid}", headers=api.h("bob")).json()
+    assert bob["spec"]["sequences"][0]["id"] != api.sequence_id
+
+    # the download needs an ended campaign
+    out = tmp_path / "dl"
+    assert main(["campaign", "download", cid, "--out", str(out), *common]) == 2
+    expand_now(api, cid)
+    for job in campaign_jobs(api, cid):
+        run_job_inline(job.id, settings=api.settings)
+        finalize_after_job(job.id, settings=api.settings)
+    assert main(["campaign", "download", cid, "--out", str(out), *common]) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    (row0,) = manifest["variants"]
+    archive = out / row0["archive"]
+    data = archive.read_bytes()
+    assert len(data) == row0["archive_bytes"] and (out / "manifest.csv").is_file()
+    # a download cut in the middle resumes from the partial file (Range)
+    archive.unlink()
+    partial = archive.with_name(archive.name + ".partial")
+    partial.write_bytes(data[: len(data) // 2])
+    ranges: list[str] = []
+    real_stream = __import__("httpx").Client.stream
+
+    def spy(self: Any, method: str, url: Any, **kw: Any) -> Any:
+        ranges.append((kw.get("headers") or {}).get("Range", ""))
+        return real_stream(self, method, url, **kw)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("httpx.Client.stream", spy)
+        assert main(["campaign", "download", cid, "--out", str(out), *common]) == 0
+    assert f"bytes={len(data) // 2}-" in ranges
+    assert archive.read_bytes() == data and not partial.exists()

@@ -1,4 +1,5 @@
-"""``osdar-ar campaign run``: a campaign embedded (worker/campaign/run.py does the work)."""
+"""``osdar-ar campaign run``: a campaign embedded (worker/campaign/run.py does the work);
+``campaign submit`` and ``campaign download``: on a running service (campaign_client.py)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 from osdar_platform.settings import get_settings
 from worker.campaign.run import CampaignRunError, VariantRecord, load_campaign, run_campaign
 from worker.campaign.variant import Variant
+from worker.cli import campaign_client
 from worker.cli.errors import CliError
 from worker.cli.progress import progress_bar
 
@@ -34,7 +36,9 @@ def _position(v: Variant) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.campaign_command != "run":  # pragma: no cover - argparse allows only run
+    if args.campaign_command in ("submit", "download"):
+        return campaign_client.run(args)
+    if args.campaign_command != "run":  # pragma: no cover - argparse allows no other
         raise CliError(f"unknown campaign command {args.campaign_command!r}")
     if args.workers < 1:
         raise CliError("--workers must be at least 1")

@@ -11,7 +11,7 @@ from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
 from osdar_platform.db import session_scope
-from osdar_platform.keys import create_api_key, revoke_api_key
+from osdar_platform.keys import create_api_key, revoke_api_key, set_operator
 from osdar_platform.migrate import upgrade
 from osdar_platform.models import ApiKey
 from osdar_platform.settings import Settings, get_settings
@@ -43,11 +43,13 @@ def create(args: argparse.Namespace) -> int:
                 session=session,
                 name=args.name,
                 pepper=settings.api_key_pepper.get_secret_value(),
+                operator=args.operator,
             )
             key_id = row.id
     except ValueError as exc:
         raise CliError(str(exc)) from exc
-    print(f"key {key_id} ({args.name}); the secret is shown only now:", file=sys.stderr)  # noqa: T201
+    role = " operator" if args.operator else ""
+    print(f"key {key_id} ({args.name}){role}; the secret is shown only now:", file=sys.stderr)  # noqa: T201
     print(secret)  # noqa: T201 - CLI output
     return 0
 
@@ -56,7 +58,8 @@ def list_keys(args: argparse.Namespace) -> int:
     with session_scope(_database_ready()) as session:
         for k in session.scalars(select(ApiKey).order_by(ApiKey.id)):
             state = "revoked" if k.revoked else "active"
-            print(f"{k.id:>5}  {k.prefix}...  {state:<8} {k.name}")  # noqa: T201 - CLI output
+            role = "operator" if k.operator else "key"
+            print(f"{k.id:>5}  {k.prefix}...  {role:<8} {state:<8} {k.name}")  # noqa: T201
     return 0
 
 
@@ -64,6 +67,15 @@ def revoke(args: argparse.Namespace) -> int:
     with session_scope(_database_ready()) as session:
         if not revoke_api_key(session=session, key_id=args.key_id):
             raise CliError(f"no key with id {args.key_id}")
+    return 0
+
+
+def grant_operator(args: argparse.Namespace) -> int:
+    with session_scope(_database_ready()) as session:
+        if not set_operator(session=session, key_id=args.key_id, operator=not args.revoke):
+            raise CliError(f"no key with id {args.key_id}")
+    how = "no longer an operator" if args.revoke else "an operator"
+    print(f"key {args.key_id} is {how}", file=sys.stderr)  # noqa: T201 - CLI output
     return 0
 
 
@@ -77,4 +89,10 @@ def migrate(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     if args.command == "migrate":
         return migrate(args)
-    return {"create": create, "list": list_keys, "revoke": revoke}[args.keys_command](args)
+    commands = {
+        "create": create,
+        "list": list_keys,
+        "revoke": revoke,
+        "grant-operator": grant_operator,
+    }
+    return commands[args.keys_command](args)

@@ -50,4 +50,44 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         help="cache of prepared artifacts (default: prepared/ in the workers' cache, "
         "$OSDAR_AR_CACHE_DIR, itself default ./var/cache)",
     )
+    _add_service_commands(csub)
     p.set_defaults(command_group="campaign")
+
+
+def _service(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--url",
+        default=os.environ.get("OSDAR_AR_URL", "http://127.0.0.1:8000"),
+        help="the service (default: $OSDAR_AR_URL or http://127.0.0.1:8000)",
+    )
+    p.add_argument("--key", default=None, help="API key (default: $OSDAR_AR_API_KEY)")
+
+
+def _add_service_commands(csub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    s = csub.add_parser(
+        "submit",
+        help="submit a campaign to a running service",
+        description="Check SPEC, resolve its sequence paths to the key's sequence ids "
+        "(registered, or uploaded when the service cannot read the folder) and POST it to "
+        "/v1/campaigns (idempotent: the same resolved spec is the same campaign). Prints "
+        "the campaign id.",
+    )
+    s.add_argument("spec", type=Path, help="campaign spec (.yaml, .yml or .json)")
+    _service(s)
+    s.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="expand only: print the variants with their resolved positions",
+    )
+    s.add_argument("--wait", action="store_true", help="follow the campaign to its end")
+    s.add_argument("--idempotency-key", default=None, help="default: a digest of the resolved spec")
+    d = csub.add_parser(
+        "download",
+        help="download a campaign's manifest and every variant's archive",
+        description="OUT/manifest.json, OUT/manifest.csv and OUT/archives/*.tar.gz, with a "
+        "progress bar; partial files are resumed (Range), complete ones skipped.",
+    )
+    d.add_argument("campaign_id", help="the campaign's id")
+    _service(d)
+    d.add_argument("--out", type=Path, default=None, help="output folder (default: campaigns/<id>)")
+    d.add_argument("--wait", action="store_true", help="wait for the campaign to end first")
