@@ -14,6 +14,15 @@ num ``gaugeLateralDistanceM`` (to the envelope's side, negative inside) and
 ``trackDistanceM`` (along the ego track from the train, negative behind); on a camera's
 ``bbox`` and ``poly2d`` also num ``visiblePixels`` (the object's visible mask in that
 camera). A dataset user filters by them.
+
+Motion, on the cuboid (and the lidar ``vec``) of every frame: the ``vec`` attribute
+``velocity`` [vx, vy, vz] (m/s, the object's own velocity over the ground, expressed in
+the lidar frame's axes at that frame's lidar timestamp; a static object's is [0, 0, 0])
+and the num ``speedMps`` (its length). A moving object's cuboid is its pose at the
+lidar timestamp, so cuboid centres move at that velocity plus the train's own motion.
+
+Several objects in one sequence: each is its own OpenLABEL object (its own uid and
+``<class>_synthetic_<n>`` name), its masks cut where another object hides it.
 """
 
 from __future__ import annotations
@@ -71,6 +80,9 @@ GAUGE_INTRUSION_ATTRIBUTE = "gaugeIntrusion"
 GAUGE_LATERAL_ATTRIBUTE = "gaugeLateralDistanceM"
 TRACK_DISTANCE_ATTRIBUTE = "trackDistanceM"
 VISIBLE_PIXELS_ATTRIBUTE = "visiblePixels"
+#: Motion: vec (m/s, lidar frame axes) and num (m/s) on the cuboid and the lidar vec.
+VELOCITY_ATTRIBUTE = "velocity"
+SPEED_ATTRIBUTE = "speedMps"
 
 
 @dataclass
@@ -98,6 +110,8 @@ class FrameAnnotation:
     lidar_indices: list[int] | None = None
     #: the object against the train's clearance envelope in this frame (None: not known)
     gauge: GaugeLabel | None = None
+    #: [vx, vy, vz] m/s over the ground in the lidar frame's axes (None: not known)
+    velocity: list[float] | None = None
 
 
 def gauge_attributes(g: GaugeLabel | None) -> tuple[dict[str, bool], dict[str, float]]:
@@ -173,6 +187,7 @@ def _entry(
     booleans: dict[str, bool],
     extra: dict[str, Any] | None = None,
     numbers: dict[str, float] | None = None,
+    vectors: dict[str, list[float]] | None = None,
 ) -> dict[str, Any]:
     e: dict[str, Any] = {"name": name, "val": val}
     if extra:
@@ -185,7 +200,7 @@ def _entry(
                 "boolean": [{"name": k, "val": v} for k, v in booleans.items()],
                 "num": [{"name": k, "val": float(v)} for k, v in (numbers or {}).items()],
                 "text": [{"name": k, "val": v} for k, v in text.items()],
-                "vec": [],
+                "vec": [{"name": k, "val": list(v)} for k, v in (vectors or {}).items()],
             },
         }
     )
@@ -207,6 +222,7 @@ class _Pointers:
         text: dict[str, str],
         booleans: dict[str, bool],
         numbers: dict[str, float] | None = None,
+        vectors: dict[str, list[float]] | None = None,
     ) -> None:
         p = self.by_name.setdefault(
             name,
@@ -219,6 +235,7 @@ class _Pointers:
         )
         kinds = {**{k: "text" for k in text}, **{k: "boolean" for k in booleans}}
         kinds.update({k: "num" for k in numbers or {}})
+        kinds.update({k: "vec" for k in vectors or {}})
         p["attribute_pointers"].update(kinds)
         p["_frames"].append(frame)
 
@@ -248,11 +265,13 @@ class _FrameData:
         booleans: dict[str, bool],
         extra: dict[str, Any] | None = None,
         numbers: dict[str, float] | None = None,
+        vectors: dict[str, list[float]] | None = None,
     ) -> None:
         uid = str(uuid.uuid5(_NAMESPACE, f"{self.seed}/{self.frame_idx}/{uid_key}"))
-        entry = _entry(name, kind, cs, val, uid, text, booleans, extra=extra, numbers=numbers)
+        entry = _entry(name, kind, cs, val, uid, text, booleans, extra=extra, numbers=numbers,
+                       vectors=vectors)  # fmt: skip
         self.data.setdefault(kind, []).append(entry)
-        self.pointers.point(name, kind, self.frame_idx, text, booleans, numbers)
+        self.pointers.point(name, kind, self.frame_idx, text, booleans, numbers, vectors)
 
 
 def _add_lidar_elements(
@@ -263,13 +282,19 @@ def _add_lidar_elements(
     base_text = {"occlusion": occlusion_bucket(any_occl), **provenance}
     g_bool, g_num = gauge_attributes(fa.gauge)
     booleans = {"isSynthetic": True, **g_bool}
-    nums = g_num or None
+    nums = dict(g_num)
+    vecs = None
+    if fa.velocity is not None:
+        vel = [round(float(v), 4) for v in fa.velocity]
+        vecs = {VELOCITY_ATTRIBUTE: vel}
+        nums[SPEED_ATTRIBUTE] = round(float(np.linalg.norm(vel)), 4)
     cub_name = f"{lidar_cs}__cuboid__{otype}"
-    fd.add("cuboid", cub_name, lidar_cs, fa.cuboid, "cuboid", base_text, booleans, numbers=nums)
+    fd.add("cuboid", cub_name, lidar_cs, fa.cuboid, "cuboid", base_text, booleans,
+           numbers=nums or None, vectors=vecs)  # fmt: skip
     if fa.lidar_indices is not None:
         indices = [int(i) for i in fa.lidar_indices]
         fd.add("vec", f"{lidar_cs}__vec__{otype}", lidar_cs, indices, "vec", base_text, booleans,
-               numbers=nums)  # fmt: skip
+               numbers=nums or None, vectors=vecs)  # fmt: skip
 
 
 def _add_camera_elements(

@@ -84,10 +84,10 @@ def finish_augmentation(
         t_move = time.perf_counter() - tic
 
         tic = time.perf_counter()
-        labels, oid, n_annotated = _labels_with_object(plan, records, seq_root)
+        labels, oids, n_annotated = _labels_with_object(plan, records, seq_root)
         t_labels = time.perf_counter() - tic
 
-        metrics = _metrics(plan, chunks, records, out_folder, oid, n_annotated)
+        metrics = _metrics(plan, chunks, records, out_folder, oids, n_annotated)
         metrics["timings_s"].update(
             {
                 "assemble": t_move,
@@ -97,7 +97,12 @@ def finish_augmentation(
             }
         )
         if evaluate and (seq_root / "ground_truth").is_dir():
-            _evaluate_object(metrics, plan, records)
+            if len(plan.objects) == 1 and not plan.objects[0].moving:
+                _evaluate_object(metrics, plan, records)
+            else:  # the reference render knows one static object, unoccluded by others
+                metrics["object_errors"] = {
+                    "skipped": "the object errors are measured for one static object only"
+                }
         if plan.spec.clicks is not None or plan.info.get("calibration"):
             metrics["calibration"] = plan.info.get("calibration")
         metrics["timings_s"]["finish"] = time.perf_counter() - t_finish
@@ -131,17 +136,24 @@ def _assemble(writer: SequenceWriter, plan: Plan, chunks: list[ChunkResult], seq
 
 def _labels_with_object(
     plan: Plan, records: list[FrameRecord], seq_root: Path
-) -> tuple[dict[str, Any], str | None, int]:
-    """The input labels with the object added (where visible): labels, the object's
-    UUID (None: visible nowhere, a warning in the plan), the frames annotated."""
+) -> tuple[dict[str, Any], list[str | None], list[int]]:
+    """The input labels with the objects added (each where visible): labels, per object
+    its UUID (None: visible nowhere, a warning in the plan) and the frames annotated."""
     labels = copy.deepcopy(load_labels(seq_root / plan.labels_name).raw)
-    anns = [r.annotation for r in records if r.annotation is not None]
-    oid = None
-    if anns:
-        oid = add_object(labels, obj_class=plan.obj_class, frames=anns, seed=_object_seed(plan))
-    else:
-        plan.warnings.append("the object is visible in no frame: no annotation added")
-    return labels, oid, len(anns)
+    oids: list[str | None] = []
+    counts: list[int] = []
+    for k, obj in enumerate(plan.objects):
+        anns = [r.objects[k].annotation for r in records]
+        anns_present = [a for a in anns if a is not None]
+        oid = None
+        if anns_present:
+            oid = add_object(labels, obj_class=obj.obj_class, frames=anns_present, seed=obj.seed)
+        else:
+            what = "the object" if len(plan.objects) == 1 else f"object {k} ({obj.obj_class})"
+            plan.warnings.append(f"{what} is visible in no frame: no annotation added")
+        oids.append(oid)
+        counts.append(len(anns_present))
+    return labels, oids, counts
 
 
 def _metrics(
@@ -149,36 +161,64 @@ def _metrics(
     chunks: list[ChunkResult],
     records: list[FrameRecord],
     out_folder: Path,
-    oid: str | None,
-    n_annotated: int,
+    oids: list[str | None],
+    n_annotated: list[int],
 ) -> dict[str, Any]:
-    """metrics.json without the finishing's own timings and the evaluation."""
+    """metrics.json without the finishing's own timings and the evaluation. ``object``,
+    ``placement``, ``T_world_obj``, ``cameras``, ``lidar``, ``placement_bound_px`` and
+    ``gauge`` are the first object's; ``objects`` has them for every object."""
     stages = _stage_totals(chunks)
+    per_object = [
+        _object_metrics(plan, k, records, oids[k], n_annotated[k]) for k in range(len(plan.objects))
+    ]
+    first = per_object[0]
     return {
         "sequence": Path(plan.seq_folder).name,
         "output": str(out_folder),
         "object": {
             "class": plan.obj_class,
-            "uuid": oid,
+            "uuid": oids[0],
             **plan.info,
         },
-        "placement": jsonable(plan.placement),
+        "placement": first["placement"],
         "T_world_obj": plan.T_world_obj.tolist(),
+        "objects": per_object,
         "frames": {
             "total": len(plan.all_frames),
             "augmented_range": len(plan.frames),
-            "annotated": n_annotated,
+            "annotated": sum(any(o.annotation is not None for o in r.objects) for r in records),
         },
-        "cameras": _camera_counts(plan, records),
-        "lidar": _lidar_counts(plan, records),
-        "placement_bound_px": _bound_summary(plan, records),
-        "gauge": _gauge_summary(plan, records),
+        "cameras": first["cameras"],
+        "lidar": _lidar_counts(plan, records, None),
+        "placement_bound_px": first["placement_bound_px"],
+        "gauge": first["gauge"],
         "timings_s": {
             **{f"plan_{k}": v for k, v in plan.timings.items()},
             **{f"frames_{k}": v for k, v in stages.items()},
             "frames_wall": sum(ch.seconds for ch in chunks),
         },
         "warnings": list(plan.warnings),
+    }
+
+
+def _object_metrics(
+    plan: Plan, k: int, records: list[FrameRecord], oid: str | None, n_annotated: int
+) -> dict[str, Any]:
+    """One object's part of metrics.json."""
+    obj = plan.objects[k]
+    return {
+        "index": k,
+        "class": obj.obj_class,
+        "uuid": oid,
+        "moving": obj.moving,
+        "size_m": obj.obj_full.size.tolist(),
+        "placement": jsonable(obj.placement),
+        "T_world_obj": obj.T_world_obj.tolist(),
+        "annotated_frames": n_annotated,
+        "cameras": _camera_counts(plan, records, k),
+        "lidar": _lidar_counts(plan, records, k),
+        "placement_bound_px": _bound_summary(plan, records, k),
+        "gauge": _gauge_summary(plan, records, k),
     }
 
 
@@ -194,22 +234,17 @@ def _evaluate_object(metrics: dict[str, Any], plan: Plan, records: list[FrameRec
     metrics["timings_s"]["evaluate"] = time.perf_counter() - tic
 
 
-def _object_seed(plan: Plan) -> str:
-    return f"osdar-ar/{Path(plan.seq_folder).name}/{plan.obj_class}/" + ",".join(
-        f"{v:.3f}" for v in plan.T_world_obj[:3, 3]
-    )
-
-
-def _bound_summary(plan: Plan, records: list[FrameRecord]) -> dict[str, Any]:
-    """Per camera, the 90 % placement bound (px) over the frames the object is visible in:
-    median, p90, max (confidence.py; the labels carry it per frame)."""
+def _bound_summary(plan: Plan, records: list[FrameRecord], k: int = 0) -> dict[str, Any]:
+    """Per camera, object ``k``'s 90 % placement bound (px) over the frames it is visible
+    in: median, p90, max (confidence.py; the labels carry it per frame)."""
+    bounds = plan.objects[k].placement_bounds
     out: dict[str, Any] = {}
     for c in plan.cameras:
         b = [
-            plan.placement_bounds[r.frame_idx][c]
+            bounds[r.frame_idx][c]
             for r in records
-            if c in r.cameras and r.cameras[c].visible
-            and c in plan.placement_bounds.get(r.frame_idx, {})
+            if c in r.objects[k].cameras and r.objects[k].cameras[c].visible
+            and c in bounds.get(r.frame_idx, {})
         ]  # fmt: skip
         out[c] = (
             {"median": float(np.median(b)), "p90": float(np.percentile(b, 90)),
@@ -219,16 +254,19 @@ def _bound_summary(plan: Plan, records: list[FrameRecord]) -> dict[str, Any]:
     return out
 
 
-def _gauge_summary(plan: Plan, records: list[FrameRecord]) -> dict[str, Any] | None:
-    """The object against the clearance envelope over the annotated frames (the labels
+def _gauge_summary(plan: Plan, records: list[FrameRecord], k: int = 0) -> dict[str, Any] | None:
+    """Object ``k`` against the clearance envelope over its annotated frames (the labels
     carry it per frame); None without an ego track."""
-    if not plan.gauge:
+    gauge = plan.objects[k].gauge
+    if not gauge:
         return None
-    g = [plan.gauge[r.frame_idx] for r in records
-         if r.annotation is not None and r.frame_idx in plan.gauge]  # fmt: skip
+    g = [gauge[r.frame_idx] for r in records
+         if r.objects[k].annotation is not None and r.frame_idx in gauge]  # fmt: skip
     dist = [x.track_distance_m for x in g]
+    lateral = [x.lateral_distance_m for x in g] or [next(iter(gauge.values())).lateral_distance_m]
     return {
-        "lateral_distance_m": next(iter(plan.gauge.values())).lateral_distance_m,
+        "lateral_distance_m": lateral[0] if not plan.objects[k].moving else min(lateral),
+        "lateral_distance_m_range": [min(lateral), max(lateral)],
         "intrusion_frames": sum(x.intrusion for x in g),
         "annotated_frames": len(g),
         "track_distance_m": [min(dist), max(dist)] if dist else None,
@@ -236,10 +274,10 @@ def _gauge_summary(plan: Plan, records: list[FrameRecord]) -> dict[str, Any] | N
     }
 
 
-def _camera_counts(plan: Plan, records: list[FrameRecord]) -> dict[str, Any]:
+def _camera_counts(plan: Plan, records: list[FrameRecord], k: int = 0) -> dict[str, Any]:
     out = {}
     for c in plan.cameras:
-        recs = [r.cameras[c] for r in records if c in r.cameras]
+        recs = [r.objects[k].cameras[c] for r in records if c in r.objects[k].cameras]
         out[c] = {
             "visible_frames": sum(x.visible for x in recs),
             "augmented_files": sum(x.augmented for x in recs),
@@ -248,10 +286,12 @@ def _camera_counts(plan: Plan, records: list[FrameRecord]) -> dict[str, Any]:
     return out
 
 
-def _lidar_counts(plan: Plan, records: list[FrameRecord]) -> dict[str, Any] | None:
+def _lidar_counts(plan: Plan, records: list[FrameRecord], k: int | None) -> dict[str, Any] | None:
+    """Lidar counts of object ``k`` (None: all objects together)."""
     if plan.lidar_stream is None:
         return None
-    pts = [r.lidar_points for r in records]
+    ks = range(len(plan.objects)) if k is None else [k]
+    pts = [sum(r.objects[j].lidar_points for j in ks) for r in records]
     return {
         "origins": plan.spec.lidar_origins,
         "frames_with_points": int(sum(p > 0 for p in pts)),

@@ -1,9 +1,17 @@
 """One frame of an augmentation (the recipe of :mod:`worker.augmentation.augment`).
 
-Per camera: pose at its timestamp -> render -> (not visible: link the file) -> decode
--> composite (ROI only) -> encode -> write. Lidar: pose at the lidar timestamp -> read ->
-cast rays near the object -> (no hit: link the file) -> write (the input's DATA type).
-Annotation: cuboid in the lidar frame, bbox + poly2d per camera, lidar indices.
+Per camera: poses at its timestamp -> render each object -> (none visible: link the
+file) -> decode -> composite (ROI only, far objects first) -> encode -> write. Lidar:
+poses at the lidar timestamp -> read -> cast rays near the objects -> (no hit: link the
+file) -> write (the input's DATA type). Annotation per object: cuboid in the lidar frame,
+bbox + poly2d per camera, lidar indices, velocity.
+
+Several objects hide each other with one depth test: each object is rendered with the
+scene proxies AND the other objects (posed at the same camera timestamp) as occluders in
+its depth buffer, so its coverage, mask and outline are cut wherever another object is
+nearer, and its shadow falls on the other objects too. In the lidar all objects are one
+ray-casting scene (in the base frame of the frame), so a ray stops at the nearest object
+surface; each moved point is then given to the object it lies on.
 """
 
 from __future__ import annotations
@@ -20,13 +28,14 @@ from typing import Any
 
 import cv2
 import numpy as np
+import open3d as o3d
 from numpy.typing import NDArray
 
 from geometry.camera import CameraModel
 from geometry.transforms import invert_T, transform_points
 from renderer.composite import composite
 from renderer.lidar_cast import cast_object, point_origins
-from renderer.mesh import ObjectMesh
+from renderer.mesh import ObjectMesh, ProxyMesh
 from renderer.object_render import ObjectRenderer
 from worker.augmentation.annotations import (
     CameraView,
@@ -34,7 +43,7 @@ from worker.augmentation.annotations import (
     cuboid_in_lidar,
     mask_outline,
 )
-from worker.augmentation.plan import NEAR_PLANE_M, Plan
+from worker.augmentation.plan import NEAR_PLANE_M, Plan, PlannedObject
 from worker.osdar.errors import atomic_write_bytes
 from worker.osdar.images import read_png, write_png
 from worker.osdar.pcd import PointCloud, read_pcd, write_pcd
@@ -94,16 +103,37 @@ class CameraRecord:
 
 
 @dataclass
-class FrameRecord:
-    """One frame's result: its annotation (None: the object is nowhere), per-camera
-    records, lidar counts and per-stage seconds."""
+class ObjectFrame:
+    """One object in one frame: its annotation (None: the object is nowhere), per-camera
+    records and its lidar point count."""
 
-    frame_idx: int
     annotation: FrameAnnotation | None
     cameras: dict[str, CameraRecord]
     lidar_points: int = 0
+
+
+@dataclass
+class FrameRecord:
+    """One frame's result: per object (the plan's order) an :class:`ObjectFrame`, the
+    lidar rays cast and per-stage seconds. ``annotation``, ``cameras`` and
+    ``lidar_points`` are the first object's (single-object readers)."""
+
+    frame_idx: int
+    objects: list[ObjectFrame]
     lidar_candidates: int = 0
     timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def annotation(self) -> FrameAnnotation | None:
+        return self.objects[0].annotation
+
+    @property
+    def cameras(self) -> dict[str, CameraRecord]:
+        return self.objects[0].cameras
+
+    @property
+    def lidar_points(self) -> int:
+        return self.objects[0].lidar_points
 
 
 @dataclass
@@ -154,16 +184,16 @@ def _truncated(cam: CameraModel, obj: ObjectMesh, T_world_obj: F64, T_world_base
 def composite_file(
     src: Path,
     dest: Path,
-    render: Any,
-    options: dict[str, Any],
+    layers: list[tuple[Any, dict[str, Any]]],
     compression: int,
     t: dict[str, float],
 ) -> bool:
-    """Decode ``src``, composite ``render`` into its ROI, encode once to ``dest`` (or link
-    ``src`` when no pixel changes); returns whether pixels changed.
+    """Decode ``src``, composite each ``(render, options)`` of ``layers`` in turn (far
+    objects first) into its ROI, encode once to ``dest`` (or link ``src`` when no pixel
+    changes); returns whether pixels changed.
 
     The PNG is decoded straight into OpenCV's BGR order and encoded from it: only a
-    window around the ROI (``COMPOSITE_MARGIN_PX`` wider than the LAB-matching ring, so
+    window around each ROI (``COMPOSITE_MARGIN_PX`` wider than the LAB-matching ring, so
     the result equals a full-frame composite) is converted to RGB and composited. Images
     that are not 8-bit 3-channel take the general :func:`read_png` path.
     """
@@ -174,7 +204,9 @@ def composite_file(
     if img is None or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         tic = time.perf_counter()
         rgb = read_png(src)
-        out = composite(rgb, render, **options)
+        out = rgb
+        for render, options in layers:
+            out = composite(out, render, **options)
         changed = out is not rgb and not np.array_equal(out, rgb)
         t["composite"] += time.perf_counter() - tic
         tic = time.perf_counter()
@@ -185,16 +217,18 @@ def composite_file(
         t["encode"] += time.perf_counter() - tic
         return changed
     tic = time.perf_counter()
-    u0, v0, u1, v1 = render.roi
+    changed = False
     H, W = img.shape[:2]
     m = COMPOSITE_MARGIN_PX
-    a0, b0, a1, b1 = max(u0 - m, 0), max(v0 - m, 0), min(u1 + m, W), min(v1 + m, H)
-    sub = np.ascontiguousarray(img[b0:b1, a0:a1, ::-1])
-    shifted = dataclasses.replace(render, roi=(u0 - a0, v0 - b0, u1 - a0, v1 - b0))
-    out = composite(sub, shifted, **options)
-    changed = out is not sub and not np.array_equal(out, sub)
-    if changed:
-        img[b0:b1, a0:a1] = out[..., ::-1]
+    for render, options in layers:
+        u0, v0, u1, v1 = render.roi
+        a0, b0, a1, b1 = max(u0 - m, 0), max(v0 - m, 0), min(u1 + m, W), min(v1 + m, H)
+        sub = np.ascontiguousarray(img[b0:b1, a0:a1, ::-1])
+        shifted = dataclasses.replace(render, roi=(u0 - a0, v0 - b0, u1 - a0, v1 - b0))
+        out = composite(sub, shifted, **options)
+        if out is not sub and not np.array_equal(out, sub):
+            img[b0:b1, a0:a1] = out[..., ::-1]
+            changed = True
     t["composite"] += time.perf_counter() - tic
     tic = time.perf_counter()
     if changed:
@@ -207,6 +241,15 @@ def composite_file(
         _link(src, dest)
         t["copy"] += time.perf_counter() - tic
     return changed
+
+
+def occluders(proxies: ProxyMesh, others: list[tuple[ObjectMesh, F64]]) -> ProxyMesh:
+    """The scene proxies and the other objects (mesh, (4, 4) T_world_obj) as one depth-only
+    occluder mesh in the world frame."""
+    if not others:
+        return proxies
+    parts = [proxies] + [ProxyMesh(transform_points(T, m.vertices), m.faces) for m, T in others]
+    return ProxyMesh.concatenate(parts)
 
 
 def _bounded_motion(render: Any, speed_mps: float) -> Any:
@@ -224,72 +267,113 @@ def _bounded_motion(render: Any, speed_mps: float) -> Any:
 
 def _camera_frame(
     plan: Plan, frame: int, name: str, src: Path, dest: Path, t: dict[str, float]
-) -> tuple[CameraRecord, CameraView | None, bool]:
-    """pose -> render -> composite -> write for one camera; returns (record, view,
-    whether a file was written)."""
+) -> tuple[list[CameraRecord], list[CameraView | None], bool]:
+    """poses -> render each object -> composite -> write for one camera; returns per
+    object (record, view) and whether pixels changed."""
     cam, r = plan.cameras[name], plan.spec.render
     T_world_base = plan.T_world_base[name][frame]
+    objs = plan.objects
+    meshes = [o.mesh(name, frame, full=False) for o in objs]
+    poses = [o.pose(name, frame) for o in objs]
+    renderer = camera_renderer(cam, r.antialias)
     tic = time.perf_counter()
-    render = camera_renderer(cam, r.antialias).render(
-        plan.obj_render, plan.T_world_obj, T_world_base, plan.proxies, plan.lights[name],
-        near=NEAR_PLANE_M,
-    )  # fmt: skip
+    renders = []
+    for i in range(len(objs)):
+        others = [(meshes[j], poses[j]) for j in range(len(objs)) if j != i]
+        renders.append(renderer.render(
+            meshes[i], poses[i], T_world_base, occluders(plan.proxies, others),
+            plan.lights[name], near=NEAR_PLANE_M,
+        ))  # fmt: skip
     t["render"] += time.perf_counter() - tic
-    anchor = (float(render.anchor_uv[0]), float(render.anchor_uv[1]))
-    rec = CameraRecord(False, anchor, float(render.distance_m))
-    if render.roi is None:
-        tic = time.perf_counter()
-        _link(src, dest)
-        t["copy"] += time.perf_counter() - tic
-        return rec, None, False
-    render = _bounded_motion(render, plan.speed_mps.get(frame, 0.0))
+    speed = plan.speed_mps.get(frame, 0.0)
     offset = plan.pixel_offsets.get(name, (0.0, 0.0))
     options = {
-        "speed_mps": plan.speed_mps.get(frame, 0.0),
+        "speed_mps": speed,
         "exposure_s": EXPOSURE_S,
         "lab_match": r.lab_match,
         "blur": r.blur,
         "shadow_strength": r.shadow_strength,
         "pixel_offset": offset,
     }
-    changed = composite_file(src, dest, render, options, r.png_compression, t)
-    view = None
+    shown = [i for i, rd in enumerate(renders) if rd.roi is not None]
+    if not shown:
+        tic = time.perf_counter()
+        _link(src, dest)
+        t["copy"] += time.perf_counter() - tic
+        return [_camera_record(rd) for rd in renders], [None] * len(renders), False
+    shown.sort(key=lambda i: -renders[i].distance_m)  # far objects first
+    for i in shown:
+        renders[i] = _bounded_motion(renders[i], speed)
+    changed = composite_file(
+        src, dest, [(renders[i], options) for i in shown], r.png_compression, t
+    )
+    records, views = [], []
+    for i, rd in enumerate(renders):
+        rec, view = _object_view(plan, objs[i], meshes[i], poses[i], frame, name, rd, T_world_base,
+                                 offset, changed, t)  # fmt: skip
+        records.append(rec)
+        views.append(view)
+    return records, views, changed
+
+
+def _camera_record(render: Any) -> CameraRecord:
+    anchor = (float(render.anchor_uv[0]), float(render.anchor_uv[1]))
+    return CameraRecord(False, anchor, float(render.distance_m))
+
+
+def _object_view(
+    plan: Plan,
+    obj: PlannedObject,
+    mesh: ObjectMesh,
+    T_world_obj: F64,
+    frame: int,
+    name: str,
+    render: Any,
+    T_world_base: F64,
+    offset: tuple[float, float],
+    changed: bool,
+    t: dict[str, float],
+) -> tuple[CameraRecord, CameraView | None]:
+    """One object's record and annotation view in one camera from its render."""
+    rec = _camera_record(render)
+    anchor = rec.anchor_uv
     visible = (
-        render.alpha.size > 0
+        render.roi is not None
+        and render.alpha.size > 0
         and bool(np.any(render.alpha > 0))
         and np.all(np.isfinite(render.bbox))
     )
-    if visible:
-        tic = time.perf_counter()
-        u0, v0, u1, v1 = render.bbox
-        outline = mask_outline(render.alpha, (render.roi[0], render.roi[1]))
-        trunc = _truncated(cam, plan.obj_render, plan.T_world_obj, T_world_base)
-        view = _shift_view(
-            CameraView(
-                ((u0 + u1) / 2, (v0 + v1) / 2, u1 - u0, v1 - v0),
-                outline,
-                float(render.visible_fraction),
-                trunc,
-                plan.placement_bounds.get(frame, {}).get(name),
-                int(np.count_nonzero(render.alpha > 0.5)),
-            ),
-            offset,
-        )
-        m = render.alpha > 0.5
-        rec = CameraRecord(
-            True,
-            (anchor[0] + offset[0], anchor[1] + offset[1]),
-            rec.distance_m,
-            (u0 + offset[0], v0 + offset[1], u1 + offset[0], v1 + offset[1]),
+    if not visible:
+        rec.augmented = changed and render.roi is not None
+        return rec, None
+    tic = time.perf_counter()
+    u0, v0, u1, v1 = render.bbox
+    outline = mask_outline(render.alpha, (render.roi[0], render.roi[1]))
+    trunc = _truncated(plan.cameras[name], mesh, T_world_obj, T_world_base)
+    view = _shift_view(
+        CameraView(
+            ((u0 + u1) / 2, (v0 + v1) / 2, u1 - u0, v1 - v0),
+            outline,
             float(render.visible_fraction),
-            changed,
-            tuple(int(v) for v in render.roi),  # type: ignore[arg-type]
-            np.packbits(m.ravel()).tobytes(),
-        )
-        t["annotate"] += time.perf_counter() - tic
-    else:
-        rec.augmented = changed
-    return rec, view, changed
+            trunc,
+            obj.placement_bounds.get(frame, {}).get(name),
+            int(np.count_nonzero(render.alpha > 0.5)),
+        ),
+        offset,
+    )
+    m = render.alpha > 0.5
+    rec = CameraRecord(
+        True,
+        (anchor[0] + offset[0], anchor[1] + offset[1]),
+        rec.distance_m,
+        (u0 + offset[0], v0 + offset[1], u1 + offset[0], v1 + offset[1]),
+        float(render.visible_fraction),
+        changed,
+        tuple(int(v) for v in render.roi),  # type: ignore[arg-type]
+        np.packbits(m.ravel()).tobytes(),
+    )
+    t["annotate"] += time.perf_counter() - tic
+    return rec, view
 
 
 def lidar_candidates(
@@ -384,18 +468,96 @@ def _intensity_scale_for(full: dict[str, NDArray], sub: dict[str, NDArray]) -> A
     return s
 
 
+def _bounding_sphere(mesh: ObjectMesh, T_base_obj: F64) -> tuple[F64, float]:
+    b = mesh.bounds
+    centre = transform_points(T_base_obj, (0.5 * (b[0] + b[1]))[None])[0]
+    return centre, 0.5 * float(np.linalg.norm(b[1] - b[0])) + LIDAR_SPHERE_MARGIN_M
+
+
+def cast_frame_lidar_objects(
+    fields: dict[str, NDArray],
+    meshes: list[ObjectMesh],
+    T_base_objs: list[F64],
+    origins: dict | F64,
+) -> tuple[dict[str, NDArray] | None, list[NDArray[np.int64]], int]:
+    """Several objects cast into one cloud as ONE scene: a ray stops at the nearest object
+    surface (module docstring). Only rays near some object are cast.
+
+    Returns (new fields or None when no point moved, per object its sorted point
+    indices, number of candidate rays).
+    """
+    n = len(meshes)
+    empty = [np.zeros(0, np.int64) for _ in range(n)]
+    xyz = np.stack([np.asarray(fields[k]) for k in "xyz"], axis=1)
+    o = point_origins(fields, origins) if isinstance(origins, dict) else np.asarray(origins, float)
+    cand_parts = []
+    for m, T in zip(meshes, T_base_objs, strict=True):
+        centre, radius = _bounding_sphere(m, T)
+        cand_parts.append(lidar_candidates(xyz, o, centre, radius))
+    cand = np.unique(np.concatenate(cand_parts)) if cand_parts else np.zeros(0, np.int64)
+    if len(cand) == 0:
+        return None, empty, 0
+    placed = [transform_points(T, m.vertices) for m, T in zip(meshes, T_base_objs, strict=True)]
+    offsets = np.cumsum([0] + [len(v) for v in placed[:-1]])
+    scene_mesh = ObjectMesh(
+        np.concatenate(placed),
+        np.concatenate([m.faces + k for m, k in zip(meshes, offsets, strict=True)]),
+        np.concatenate([m.colors for m in meshes]),
+        np.concatenate([m.reflectivity for m in meshes]),
+        name="objects",
+    )
+    sub = {k: np.asarray(v)[cand] for k, v in fields.items()}
+    res = cast_object(sub, scene_mesh, np.eye(4), origins,
+                      intensity_scale=_intensity_scale_for(fields, sub))  # fmt: skip
+    if res.moved == 0:
+        return None, empty, len(cand)
+    out = dict(fields)
+    idx = cand[res.object_indices]
+    for k in fields:
+        col = np.array(fields[k], copy=True)
+        col[idx] = res.fields[k][res.object_indices]
+        out[k] = col
+    owner = _owners(placed, meshes, np.stack([out[k][idx] for k in "xyz"], 1).astype(np.float64))
+    return out, [np.sort(idx[owner == k]) for k in range(n)], len(cand)
+
+
+def _owners(placed: list[F64], meshes: list[ObjectMesh], q: F64) -> NDArray[np.int64]:
+    """(k,) index of the object whose surface (vertices ``placed``, base frame) each point
+    of ``q`` (k, 3) lies on: the nearest one."""
+    scene = o3d.t.geometry.RaycastingScene()
+    ids = [
+        scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
+                            o3d.core.Tensor(m.faces.astype(np.uint32)))
+        for v, m in zip(placed, meshes, strict=True)
+    ]  # fmt: skip
+    got = scene.compute_closest_points(o3d.core.Tensor(q.astype(np.float32)))
+    gid = got["geometry_ids"].numpy().astype(np.int64)
+    lookup = {int(g): k for k, g in enumerate(ids)}
+    return np.array([lookup.get(int(g), -1) for g in gid], dtype=np.int64)
+
+
 def _lidar_frame(
     plan: Plan, frame: int, src: Path, dest: Path, t: dict[str, float]
-) -> tuple[list[int] | None, int, bool]:
-    """read -> cast -> write for one cloud; returns (object indices, candidates, written)."""
+) -> tuple[list[list[int]] | None, int, bool]:
+    """read -> cast -> write for one cloud; returns (per object its point indices, None
+    when no point moved; candidates; written)."""
 
-    assert plan.lidar_origins is not None
+    assert plan.lidar_origins is not None and plan.lidar_stream is not None
+    stream = plan.lidar_stream
     tic = time.perf_counter()
     cloud = read_pcd(src)
     t["lidar_read"] += time.perf_counter() - tic
     tic = time.perf_counter()
-    T_base_obj = invert_T(plan.T_world_base[plan.lidar_stream][frame]) @ plan.T_world_obj
-    new, idx, n_cand = cast_frame_lidar(cloud.fields, plan.obj_full, T_base_obj, plan.lidar_origins)
+    T_base_world = invert_T(plan.T_world_base[stream][frame])
+    meshes = [o.mesh(stream, frame, full=True) for o in plan.objects]
+    T_base_objs = [T_base_world @ o.pose(stream, frame) for o in plan.objects]
+    if len(meshes) == 1:
+        new, idx, n_cand = cast_frame_lidar(cloud.fields, meshes[0], T_base_objs[0],
+                                            plan.lidar_origins)  # fmt: skip
+        per = [idx]
+    else:
+        new, per, n_cand = cast_frame_lidar_objects(cloud.fields, meshes, T_base_objs,
+                                                    plan.lidar_origins)  # fmt: skip
     t["lidar_cast"] += time.perf_counter() - tic
     tic = time.perf_counter()
     if new is None:
@@ -404,7 +566,7 @@ def _lidar_frame(
         return None, n_cand, False
     write_pcd(dest, PointCloud(fields=new, header=cloud.header))
     t["lidar_write"] += time.perf_counter() - tic
-    return [int(i) for i in idx], n_cand, True
+    return [[int(i) for i in idx] for idx in per], n_cand, True
 
 
 STAGE_KEYS = (
@@ -420,49 +582,77 @@ STAGE_KEYS = (
 )
 
 
+def _annotation_pose(plan: Plan, frame: int) -> tuple[str, F64]:
+    """The stream and vehicle pose the frame's cuboids use: the lidar's, else the first
+    camera's."""
+    lidar = plan.lidar_stream
+    if lidar is not None and frame in plan.T_world_base.get(lidar, {}):
+        return lidar, plan.T_world_base[lidar][frame]
+    cam = next(c for c in plan.cameras if frame in plan.T_world_base[c])
+    return cam, plan.T_world_base[cam][frame]
+
+
+def _annotation(
+    plan: Plan,
+    obj: PlannedObject,
+    frame: int,
+    views: dict[str, CameraView],
+    lidar_idx: list[int] | None,
+) -> FrameAnnotation | None:
+    """One object's annotation of the frame (None: it shows nowhere)."""
+    if not views and not lidar_idx:
+        return None
+    stream, T_lidar = _annotation_pose(plan, frame)
+    mesh = obj.mesh(stream, frame, full=True)
+    ann = FrameAnnotation(
+        frame,
+        cuboid_in_lidar(mesh, obj.pose(stream, frame), T_lidar),
+        views,
+        lidar_idx if plan.lidar_stream is not None else None,
+        obj.gauge.get(frame),
+        velocity=[float(v) for v in T_lidar[:3, :3].T @ obj.velocity(frame)],
+    )
+    if ann.lidar_indices is None and plan.lidar_stream is not None:
+        ann.lidar_indices = []
+    return ann
+
+
 def augment_frame(plan: Plan, frame: int, out_root: Path) -> tuple[FrameRecord, list[str]]:
     """One frame (module docstring's recipe); files go under ``out_root`` at their uris."""
 
     t = dict.fromkeys(STAGE_KEYS, 0.0)
     seq_root = Path(plan.seq_folder)
     uris = plan.uris[frame]
+    n = len(plan.objects)
     written: list[str] = []
-    views: dict[str, CameraView] = {}
-    records: dict[str, CameraRecord] = {}
+    views: list[dict[str, CameraView]] = [{} for _ in range(n)]
+    records: list[dict[str, CameraRecord]] = [{} for _ in range(n)]
     for name in plan.cameras:
         if name not in uris:
             continue
         uri = uris[name]
-        rec, view, _ = _camera_frame(
+        recs, vws, _ = _camera_frame(
             plan, frame, name, uri_to_path(seq_root, uri), uri_to_path(out_root, uri), t
         )
         written.append(uri.lstrip("/"))
-        records[name] = rec
-        if view is not None:
-            views[name] = view
-    lidar_idx, n_cand = None, 0
+        for k in range(n):
+            records[k][name] = recs[k]
+            if vws[k] is not None:
+                views[k][name] = vws[k]  # type: ignore[assignment]
+    lidar_idx: list[list[int]] | None = None
+    n_cand = 0
     if plan.lidar_stream is not None and plan.lidar_stream in uris:
         uri = uris[plan.lidar_stream]
         lidar_idx, n_cand, _ = _lidar_frame(
             plan, frame, uri_to_path(seq_root, uri), uri_to_path(out_root, uri), t
         )
         written.append(uri.lstrip("/"))
-    ann = None
-    if views or lidar_idx:
-        T_lidar = plan.T_world_base.get(plan.lidar_stream or "", {}).get(frame)
-        if T_lidar is None:  # no lidar stream: the first camera's pose
-            T_lidar = next(plan.T_world_base[c][frame] for c in plan.cameras)
-        ann = FrameAnnotation(
-            frame,
-            cuboid_in_lidar(plan.obj_full, plan.T_world_obj, T_lidar),
-            views,
-            lidar_idx if plan.lidar_stream is not None else None,
-            plan.gauge.get(frame),
-        )
-        if ann.lidar_indices is None and plan.lidar_stream is not None:
-            ann.lidar_indices = []
-    rec = FrameRecord(frame, ann, records, len(lidar_idx or []), n_cand, t)
-    return rec, written
+    objects = []
+    for k, obj in enumerate(plan.objects):
+        idx = None if lidar_idx is None else lidar_idx[k]
+        ann = _annotation(plan, obj, frame, views[k], idx)
+        objects.append(ObjectFrame(ann, records[k], len(idx or [])))
+    return FrameRecord(frame, objects, n_cand, t), written
 
 
 def augment_frames(plan: Plan, frames: Iterable[int], out_root: str | Path) -> ChunkResult:

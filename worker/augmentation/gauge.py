@@ -219,11 +219,33 @@ def gauge_labels(
     return {f: label_for(measure, float(st)) for f, st in zip(frames, s_train, strict=True)}
 
 
+def gauge_labels_moving(
+    ego: Any,
+    p_world_by_frame: Mapping[int, F64],
+    T_world_base: Mapping[int, F64],
+    outline: GaugeOutline | None = None,
+) -> dict[int, GaugeLabel]:
+    """The gauge label of a moving object in each frame: its points (n, 3) world at that
+    frame's timestamp (``p_world_by_frame``) against the envelope, with the train at
+    ``T_world_base`` of the same frame. Frames missing from either are skipped."""
+    if ego is None:
+        return {}
+    frames = sorted(set(p_world_by_frame) & set(T_world_base))
+    if not frames:
+        return {}
+    s_train = train_arc_length(ego, np.stack([T_world_base[f] for f in frames]))
+    return {
+        f: label_for(measure_against_envelope(ego, p_world_by_frame[f], outline), float(st))
+        for f, st in zip(frames, s_train, strict=True)
+    }
+
+
 __all__ = [
     "EnvelopeMeasure",
     "GaugeLabel",
     "GaugeOutline",
     "gauge_labels",
+    "gauge_labels_moving",
     "label_for",
     "measure_against_envelope",
     "smoothed_curvature",

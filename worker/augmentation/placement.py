@@ -210,7 +210,7 @@ def resolve_placement(
         z_snap = snap_height(proxies, p)
         if z_snap is not None:
             p[2], surface = z_snap, "proxy"
-    _check_poles(p, obj, heading, poles)
+    check_poles(p, obj, heading, poles)
     return ResolvedPlacement(
         _yaw_T(p, heading),
         surface,
@@ -234,7 +234,7 @@ def snap_height(proxies: ProxyMesh, p_world: F64) -> float | None:
     return float(origin[2] + SNAP_FROM_ABOVE - t)
 
 
-def _check_poles(p: F64, obj: ObjectMesh, heading: float, poles: list[Any]) -> None:
+def check_poles(p: F64, obj: ObjectMesh, heading: float, poles: list[Any]) -> None:
     """Refuse a footprint (the object's xy bounding box, rotated) that cuts a pole."""
     if not poles:
         return

@@ -1,7 +1,9 @@
 """Planning an augmentation: everything frame-independent, done once per job.
 
-The object mesh and its level of detail, the placement, the proxies, the lighting per
-camera and the vehicle pose at every sensor timestamp, collected in a :class:`Plan`.
+The objects' meshes and their levels of detail, their placements (a moving object's pose
+at every sensor timestamp), the proxies, the lighting per camera and the vehicle pose at
+every sensor timestamp, collected in a :class:`Plan`; each object in a
+:class:`PlannedObject`.
 """
 
 from __future__ import annotations
@@ -20,18 +22,20 @@ from geometry.camera import CameraModel, load_cameras
 from geometry.transforms import transform_points
 from renderer.assets import MeshError, build_obstacle, choose_detail, load_user_mesh, simplify
 from renderer.assets.lod import FACES_PER_PX
+from renderer.assets.walk_cycle import gait_phase, walk_pose
 from renderer.lidar_cast import origins_from_json
 from renderer.lighting import Lighting, estimate_lighting, sun_dir_enu
 from renderer.mesh import ObjectMesh, ProxyMesh
 from worker.augmentation.confidence import placement_bounds
-from worker.augmentation.gauge import GaugeLabel, gauge_labels
+from worker.augmentation.gauge import GaugeLabel, gauge_labels, gauge_labels_moving
+from worker.augmentation.motion import MovingPoses, moving_poses
 from worker.augmentation.placement import (
     RAIL_HEIGHT_ABOVE_BED,
     ResolvedPlacement,
     resolve_placement,
 )
 from worker.augmentation.proxies import build_proxies
-from worker.augmentation.spec import AugmentSpec
+from worker.augmentation.spec import AugmentSpec, ObjectSource, SceneObject
 from worker.osdar.sequence import Sequence
 
 log = logging.getLogger(__name__)
@@ -48,16 +52,74 @@ class AugmentError(ValueError):
 
 # ---------------------------------------------------------------------------- the plan
 @dataclass
+class PlannedObject:
+    """One object of a plan (stored in the plan's record: records.py).
+
+    index : its place in the spec's objects; obj_class : the class annotated;
+    seed : what its annotation UUIDs are derived from (the same job, the same UUIDs).
+    obj_full / obj_render : the mesh (lidar, cuboid) and its level of detail for the
+    cameras, in the rest pose (a walking person is posed per frame: :meth:`mesh`).
+    T_world_obj : (4, 4) its pose at the first frame of the range (lidar clock); a
+    static object's only pose.
+    poses : a moving object's stream -> frame -> (4, 4) pose at that stream's timestamp
+    of the frame; None: static.
+    phases : stream -> frame -> walk-cycle phase (rad) of a walking person; None: rigid.
+    velocity_world : frame -> (3,) m/s over the ground at the lidar timestamp (a moving
+    object's; empty: static).
+    gauge : frame -> the object against the train's clearance envelope (gauge.py).
+    placement_bounds : frame -> camera -> 90 % bound (px) on the placement error.
+    """
+
+    index: int
+    obj_class: str
+    seed: str
+    obj_full: ObjectMesh
+    obj_render: ObjectMesh
+    T_world_obj: F64
+    placement: dict[str, Any]
+    poses: dict[str, dict[int, F64]] | None = None
+    phases: dict[str, dict[int, float]] | None = None
+    velocity_world: dict[int, F64] = field(default_factory=dict)
+    gauge: dict[int, GaugeLabel] = field(default_factory=dict)
+    placement_bounds: dict[int, dict[str, float]] = field(default_factory=dict)
+
+    @property
+    def moving(self) -> bool:
+        return self.poses is not None
+
+    def pose(self, stream: str, frame: int) -> F64:
+        """(4, 4) T_world_obj at ``stream``'s timestamp of ``frame``."""
+        if self.poses is None:
+            return self.T_world_obj
+        return self.poses[stream][frame]
+
+    def mesh(self, stream: str, frame: int, *, full: bool) -> ObjectMesh:
+        """The mesh (full or the cameras' level of detail) as it is at ``stream``'s
+        timestamp of ``frame`` (a walking person posed, else the rest mesh)."""
+        base = self.obj_full if full else self.obj_render
+        if self.phases is None:
+            return base
+        return walk_pose(base, self.phases[stream][frame])
+
+    def velocity(self, frame: int) -> F64:
+        """(3,) world velocity (m/s) at the lidar timestamp of ``frame``."""
+        v = self.velocity_world.get(frame)
+        return np.zeros(3) if v is None else np.asarray(v, dtype=np.float64)
+
+
+@dataclass
 class Plan:
     """Everything frame-independent of one augmentation (stored as a record: records.py).
 
     frames : the frame indices to augment (the spec's range); all_frames : every frame.
     uris : frame -> stream -> uri (relative to the sequence folder).
     T_world_base : stream -> frame -> (4, 4) vehicle pose at that stream's timestamp.
-    T_world_obj : (4, 4) the object's pose; obj_full / obj_render : the mesh (lidar,
-    cuboid) and its level of detail for the cameras; proxies : world frame.
+    objects : the objects (:class:`PlannedObject`, at least one); proxies : world frame.
     lights, pixel_offsets : per camera; speed_mps : frame -> vehicle speed.
     lidar_origins : {sensor_index: (3,)} or (3,) base-frame ray origins, None: no lidar.
+
+    ``T_world_obj``, ``obj_full``, ``obj_render``, ``obj_class``, ``placement``,
+    ``gauge`` and ``placement_bounds`` are the first object's (single-object readers).
     """
 
     seq_folder: str
@@ -68,11 +130,7 @@ class Plan:
     lidar_stream: str | None
     uris: dict[int, dict[str, str]]
     T_world_base: dict[str, dict[int, F64]]
-    T_world_obj: F64
-    placement: dict[str, Any]
-    obj_full: ObjectMesh
-    obj_render: ObjectMesh
-    obj_class: str
+    objects: list[PlannedObject]
     proxies: ProxyMesh
     lights: dict[str, Lighting]
     pixel_offsets: dict[str, tuple[float, float]]
@@ -82,10 +140,40 @@ class Plan:
     timings: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
-    #: frame -> camera -> 90 % bound (px) on the placement error (confidence.py)
-    placement_bounds: dict[int, dict[str, float]] = field(default_factory=dict)
-    #: frame -> the object against the train's clearance envelope (gauge.py; {}: no ego)
-    gauge: dict[int, GaugeLabel] = field(default_factory=dict)
+
+    @property
+    def T_world_obj(self) -> F64:
+        return self.objects[0].T_world_obj
+
+    @property
+    def obj_full(self) -> ObjectMesh:
+        return self.objects[0].obj_full
+
+    @property
+    def obj_render(self) -> ObjectMesh:
+        return self.objects[0].obj_render
+
+    @property
+    def obj_class(self) -> str:
+        return self.objects[0].obj_class
+
+    @property
+    def placement(self) -> dict[str, Any]:
+        return self.objects[0].placement
+
+    @property
+    def gauge(self) -> dict[int, GaugeLabel]:
+        return self.objects[0].gauge
+
+    @property
+    def placement_bounds(self) -> dict[int, dict[str, float]]:
+        return self.objects[0].placement_bounds
+
+    @property
+    def annotation_stream(self) -> str:
+        """The stream whose timestamps the annotations (cuboids, gauge) use: the lidar,
+        else the first camera."""
+        return self.lidar_stream or next(iter(self.cameras))
 
 
 # ---------------------------------------------------------------------------- planning
@@ -99,11 +187,11 @@ def _frame_times(seq: Any, stream: str) -> dict[int, float]:
     return {int(f): float(t) for f, t in zip(seq.frame_indices, ts, strict=True) if np.isfinite(t)}
 
 
-def load_object(spec: AugmentSpec) -> ObjectMesh:
-    """The spec's object mesh at full detail. Raises AugmentError (unknown name, bad
-    mesh file)."""
+def load_object(source: ObjectSource | AugmentSpec) -> ObjectMesh:
+    """An object's mesh at full detail (an AugmentSpec: its first object's). Raises
+    AugmentError (unknown name, bad mesh file)."""
 
-    o = spec.object
+    o = source if isinstance(source, ObjectSource) else source.scene_objects[0].object
     try:
         if o.builtin is not None:
             mesh = build_obstacle(o.builtin, seed=o.seed, detail=o.detail, scale=o.scale)
@@ -202,6 +290,7 @@ class _Opened:
     uris: dict[int, dict[str, str]]
     lidar_times: dict[int, float]  # the frames' clock (the first camera's without lidar)
     poses: dict[str, dict[int, F64]]
+    times: dict[str, dict[int, float]]  # stream -> frame -> timestamp (s)
 
 
 def _frames_in_range(spec: AugmentSpec, all_frames: list[int]) -> list[int]:
@@ -243,21 +332,66 @@ def _open(seq: Any, spec: AugmentSpec, track: Any, warnings: list[str]) -> _Open
         }
     except ValueError as exc:
         raise AugmentError(f"the prepared poses do not cover the frames: {exc}") from exc
-    return _Opened(cam_names, cams, lidar_stream, all_frames, frames, uris, lidar_times, poses)
+    return _Opened(
+        cam_names, cams, lidar_stream, all_frames, frames, uris, lidar_times, poses, streams
+    )
+
+
+@dataclass
+class _Placed:
+    """One object placed: static (``resolved``) or moving (``moving``: the poses at
+    ``stream_frames``, stream by stream in the order of ``view.times``)."""
+
+    resolved: ResolvedPlacement | None
+    moving: MovingPoses | None = None
+    stream_frames: list[tuple[str, int]] = field(default_factory=list)
+
+    @property
+    def T_first(self) -> F64:
+        """The pose at the first frame of the range (the first row is the lidar clock's)."""
+        if self.moving is not None:
+            return self.moving.T_world_obj[0]
+        assert self.resolved is not None
+        return self.resolved.T_world_obj
+
+
+def _stream_times(view: _Opened) -> tuple[list[tuple[str, int]], F64]:
+    """Every (stream, frame) of the range with its timestamp; the lidar clock's first
+    frame first (the reference pose of a moving object)."""
+    clock = view.lidar_stream if view.lidar_stream is not None else view.cam_names[0]
+    order = [clock] + [st for st in view.times if st != clock]
+    pairs = [(st, f) for st in order for f in view.frames if f in view.times[st]]
+    return pairs, np.array([view.times[st][f] for st, f in pairs])
+
+
+def _place_one(
+    so: SceneObject,
+    obj: ObjectMesh,
+    prepared: Any,
+    view: _Opened,
+    proxies: ProxyMesh | None,
+    poles: list[Any],
+) -> _Placed:
+    """An object's pose(s): snapped onto ``proxies`` (None: nominal) and clear of poles."""
+    t_first = view.lidar_times[view.frames[0]]
+    if so.motion is not None:
+        pairs, times = _stream_times(view)
+        got = moving_poses(so.motion, obj, ego=prepared.ego, track=prepared.track,
+                           t_first=t_first, times=times, proxies=proxies, poles=poles)  # fmt: skip
+        return _Placed(None, got, pairs)
+    kw = {"ego": prepared.ego, "track": prepared.track, "frame_times": view.lidar_times,
+          "poles": poles, "obj": obj}  # fmt: skip
+    return _Placed(resolve_placement(so.placement.to_spec(), proxies=proxies, **kw))
 
 
 def _place(
-    spec: AugmentSpec, prepared: Any, obj: ObjectMesh, view: _Opened
-) -> tuple[ResolvedPlacement, ProxyMesh]:
-    """Placement: nominal point -> proxies around it -> snapped onto them, poles checked."""
-    kw = {
-        "ego": prepared.ego,
-        "track": prepared.track,
-        "frame_times": view.lidar_times,
-        "poles": [],
-        "obj": obj,
-    }
-    nominal = resolve_placement(spec.placement.to_spec(), proxies=None, **kw)
+    spec: AugmentSpec, prepared: Any, objs: list[ObjectMesh], view: _Opened
+) -> tuple[list[_Placed], ProxyMesh]:
+    """Placement: nominal points -> proxies around all of them -> snapped onto the
+    proxies, poles checked, object by object."""
+    scene = spec.scene_objects
+    pairs = list(zip(scene, objs, strict=True))
+    nominal = [_place_one(so, o, prepared, view, None, []) for so, o in pairs]
     cam_xyz = np.concatenate(
         [
             np.stack(
@@ -270,26 +404,49 @@ def _place(
             for c in view.cam_names
         ]
     )
-    p0 = nominal.T_world_obj[:3, 3]
-    ground_z = p0[2] - (0.0 if nominal.surface == "nominal" and abs(spec.placement.offset) < 1
+    extra = [n.moving.T_world_obj[:, :3, 3] for n in nominal if n.moving is not None]
+    extra += [n.T_first[None, :3, 3] for n in nominal[1:]]
+    first, so0 = nominal[0], scene[0]
+    p0 = first.T_first[:3, 3]
+    nominal_surface = first.resolved.surface if first.resolved is not None else "nominal"
+    offset0 = so0.placement.offset if so0.motion is None else float(so0.motion.path[0][1])
+    on_bed = so0.placement.mode == "track" if so0.motion is None else so0.motion.mode == "track"
+    ground_z = p0[2] - (0.0 if nominal_surface == "nominal" and on_bed and abs(offset0) < 1
                         else RAIL_HEIGHT_ABOVE_BED)  # fmt: skip
-    proxies = build_proxies(prepared, p0, cam_xyz, ground_z=ground_z)
-    kw["poles"] = list(prepared.poles)
-    placed: ResolvedPlacement = resolve_placement(spec.placement.to_spec(), proxies=proxies, **kw)
+    proxies = build_proxies(prepared, p0, np.concatenate([cam_xyz, *extra]), ground_z=ground_z)
+    poles = list(prepared.poles)
+    placed = [_place_one(so, o, prepared, view, proxies, poles) for so, o in pairs]
     return placed, proxies
 
 
-def _level_of_detail(obj: ObjectMesh, view: _Opened, T_world_obj: F64) -> tuple[ObjectMesh, float]:
+def _footprints_overlap(objs: list[ObjectMesh], placed: list[_Placed]) -> list[str]:
+    """Warnings for pairs of objects whose bounding boxes overlap at the first frame."""
+    out = []
+    boxes = []
+    for o, pl in zip(objs, placed, strict=True):
+        q = transform_points(pl.T_first, o.vertices[:: max(1, len(o.vertices) // 2000)])
+        boxes.append((q.min(axis=0), q.max(axis=0)))
+    for i in range(len(boxes)):
+        for j in range(i + 1, len(boxes)):
+            lo = np.maximum(boxes[i][0], boxes[j][0])
+            hi = np.minimum(boxes[i][1], boxes[j][1])
+            if np.all(hi > lo):
+                out.append(f"objects {i} and {j} overlap at the first frame: they intersect")
+    return out
+
+
+def _level_of_detail(
+    obj: ObjectMesh, view: _Opened, positions: F64
+) -> tuple[ObjectMesh, float]:
     """The mesh the cameras render, simplified for the largest projected height (px) over
-    the frames, and that height."""
+    the frames (and, for a moving object, over its ``positions`` (k, 3)), and that
+    height."""
     in_range = {
         c: {f: view.poses[c][f] for f in view.frames if f in view.poses[c]} for c in view.cam_names
     }
-    h_px = _projected_height_px(
-        view.cams,
-        in_range,
-        T_world_obj[:3, 3] + np.array([0.0, 0.0, 0.5 * obj.size[2]]),
-        float(obj.size[2]),
+    up = np.array([0.0, 0.0, 0.5 * obj.size[2]])
+    h_px = max(
+        _projected_height_px(view.cams, in_range, p + up, float(obj.size[2])) for p in positions
     )
     budget = choose_detail(h_px, float(obj.meta.get("lod_faces_per_px", FACES_PER_PX)))
     obj_render = simplify(obj, budget) if budget < len(obj.faces) else obj
@@ -342,17 +499,19 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
     timings["open"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
-    obj = load_object(spec)
+    objs = []
+    for i, so in enumerate(spec.scene_objects):
+        try:
+            objs.append(load_object(so.object))
+        except AugmentError as exc:
+            raise AugmentError(f"objects[{i}]: {exc}" if len(spec.scene_objects) > 1
+                               else str(exc)) from exc  # fmt: skip
     timings["object"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
-    placed, proxies = _place(spec, prepared, obj, view)
-    T_world_obj = placed.T_world_obj
+    placed, proxies = _place(spec, prepared, objs, view)
+    warnings += _footprints_overlap(objs, placed)
     timings["placement"] = time.perf_counter() - tic
-
-    tic = time.perf_counter()
-    obj_render, h_px = _level_of_detail(obj, view, T_world_obj)
-    timings["lod"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
     lights = _lights(spec, prepared, seq, view, warnings)
@@ -360,11 +519,20 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
 
     offsets = _render_offsets(spec, prepared, view.cams, warnings)
     origins = _lidar_origins(spec) if view.lidar_stream is not None else None
-    log.info(
-        "plan: %s at %s (%s), %d/%d faces (%.0f px high at most), %d proxy faces",
-        obj.name, np.round(T_world_obj[:3, 3], 2).tolist(), placed.surface,
-        len(obj_render.faces), len(obj.faces), h_px, len(proxies.faces),
-    )  # fmt: skip
+    tic = time.perf_counter()
+    planned = [
+        _planned_object(i, so, obj, pl, spec, prepared, view, Path(seq_folder).name)
+        for i, (so, obj, pl) in enumerate(zip(spec.scene_objects, objs, placed, strict=True))
+    ]
+    timings["objects"] = time.perf_counter() - tic
+    for po in planned:
+        log.info(
+            "plan: %s at %s (%s), %d/%d faces (%.0f px high at most)%s",
+            po.obj_class, np.round(po.T_world_obj[:3, 3], 2).tolist(),
+            po.placement.get("surface"), len(po.obj_render.faces), len(po.obj_full.faces),
+            po.placement.get("projected_height_px_max", 0.0), ", moving" if po.moving else "",
+        )  # fmt: skip
+    first = planned[0]
     return Plan(
         seq_folder=str(Path(seq_folder)),
         spec=spec,
@@ -374,17 +542,7 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
         lidar_stream=view.lidar_stream,
         uris=view.uris,
         T_world_base=view.poses,
-        T_world_obj=T_world_obj,
-        placement={
-            "surface": placed.surface,
-            "s": placed.s,
-            "lateral": placed.lateral,
-            **placed.info,
-            "spec": spec.placement.model_dump(mode="json"),
-        },
-        obj_full=obj,
-        obj_render=obj_render,
-        obj_class=spec.object.class_name,
+        objects=planned,
         proxies=proxies,
         lights=lights,
         pixel_offsets=offsets,
@@ -394,28 +552,107 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
         timings=timings,
         warnings=warnings,
         info={
-            "object_faces": len(obj.faces),
-            "render_faces": len(obj_render.faces),
-            "projected_height_px_max": h_px,
-            "object_size_m": obj.size.tolist(),
+            "object_faces": len(first.obj_full.faces),
+            "render_faces": len(first.obj_render.faces),
+            "projected_height_px_max": first.placement.get("projected_height_px_max"),
+            "object_size_m": first.obj_full.size.tolist(),
+            "objects": len(planned),
             "proxy_faces": len(proxies.faces),
             "strategy": getattr(prepared, "strategy", ""),
             "world": prepared.world.to_json(),
         },
-        placement_bounds=placement_bounds(
-            prepared.track, getattr(prepared, "information", None), view.cams, view.poses,
-            T_world_obj, view.frames,
-        ),
-        gauge=_gauge(spec, prepared, obj, T_world_obj, view),
+    )
+
+
+def _planned_object(
+    index: int,
+    so: SceneObject,
+    obj: ObjectMesh,
+    pl: _Placed,
+    spec: AugmentSpec,
+    prepared: Any,
+    view: _Opened,
+    seq_name: str,
+) -> PlannedObject:
+    """One object's plan: its poses per stream, level of detail, walk-cycle phases,
+    velocities, gauge labels and placement bounds."""
+    clock = view.lidar_stream or view.cam_names[0]
+    poses: dict[str, dict[int, F64]] | None = None
+    phases: dict[str, dict[int, float]] | None = None
+    velocity: dict[int, F64] = {}
+    if pl.moving is not None:
+        assert so.motion is not None
+        mv = pl.moving
+        poses, walked = {}, {}
+        for k, (st, f) in enumerate(pl.stream_frames):
+            poses.setdefault(st, {})[f] = mv.T_world_obj[k]
+            walked.setdefault(st, {})[f] = float(mv.walked_m[k])
+            if st == clock:
+                velocity[f] = mv.velocity_world[k]
+        if so.motion.gait and so.object.builtin is not None and obj.meta.get("class") == "person":
+            h = float(obj.size[2])
+            phases = {
+                st: {f: gait_phase(d, h) for f, d in per.items()} for st, per in walked.items()
+            }
+        positions = mv.T_world_obj[:: max(1, len(mv.T_world_obj) // 8), :3, 3]
+        surface = "proxy"
+        placement: dict[str, Any] = {
+            "surface": surface,
+            "s": None if mv.s_offset is None else float(mv.s_offset[0, 0]),
+            "lateral": None if mv.s_offset is None else float(mv.s_offset[0, 1]),
+            "xyz": mv.T_world_obj[0, :3, 3].tolist(),
+            "motion": so.motion.model_dump(mode="json"),
+        }
+    else:
+        assert pl.resolved is not None
+        r = pl.resolved
+        positions = r.T_world_obj[None, :3, 3]
+        placement = {"surface": r.surface, "s": r.s, "lateral": r.lateral, **r.info}
+    placement["spec"] = so.placement.model_dump(mode="json")
+    obj_render, h_px = _level_of_detail(obj, view, positions)
+    placement["projected_height_px_max"] = h_px
+    T0 = pl.T_first
+    seed = f"osdar-ar/{seq_name}/{so.object.class_name}/" + ",".join(
+        f"{v:.3f}" for v in T0[:3, 3]
+    ) + (f"#{index}" if index else "")
+    po = PlannedObject(
+        index=index, obj_class=so.object.class_name, seed=seed, obj_full=obj,
+        obj_render=obj_render, T_world_obj=T0, placement=placement, poses=poses,
+        phases=phases, velocity_world=velocity,
     )  # fmt: skip
+    po.gauge = _gauge(spec, prepared, po, view)
+    po.placement_bounds = _bounds(prepared, po, view)
+    return po
 
 
 def _gauge(
-    spec: AugmentSpec, prepared: Any, obj: ObjectMesh, T_world_obj: F64, view: _Opened
+    spec: AugmentSpec, prepared: Any, po: PlannedObject, view: _Opened
 ) -> dict[int, GaugeLabel]:
     """The gauge label per frame of the range, at the poses the annotations use (the
-    lidar's, else the first camera's)."""
+    lidar's, else the first camera's); a moving object measured in every frame."""
     stream = view.lidar_stream or view.cam_names[0]
     poses = {f: view.poses[stream][f] for f in view.frames if f in view.poses[stream]}
-    p_world = transform_points(T_world_obj, obj.vertices)
-    return gauge_labels(prepared.ego, p_world, poses, spec.gauge)
+    if not po.moving:
+        p_world = transform_points(po.T_world_obj, po.obj_full.vertices)
+        return gauge_labels(prepared.ego, p_world, poses, spec.gauge)
+    pts = {
+        f: transform_points(po.pose(stream, f), po.mesh(stream, f, full=True).vertices)
+        for f in poses
+    }
+    return gauge_labels_moving(prepared.ego, pts, poses, spec.gauge)
+
+
+def _bounds(prepared: Any, po: PlannedObject, view: _Opened) -> dict[int, dict[str, float]]:
+    """The per-frame 90 % placement bounds (confidence.py) at the object's position in
+    each frame (a moving object's moves)."""
+    info = getattr(prepared, "information", None)
+    if not po.moving:
+        return placement_bounds(prepared.track, info, view.cams, view.poses, po.T_world_obj,
+                                view.frames)  # fmt: skip
+    stream = view.lidar_stream or view.cam_names[0]
+    out: dict[int, dict[str, float]] = {}
+    for f in view.frames:
+        if f in view.poses[stream]:
+            out.update(placement_bounds(prepared.track, info, view.cams, view.poses,
+                                        po.pose(stream, f), [f]))  # fmt: skip
+    return out

@@ -32,16 +32,16 @@ from pydantic import BaseModel, ValidationError
 
 from geometry.camera import CameraModel
 from renderer.lighting import Lighting
-from renderer.mesh import ObjectMesh, ProxyMesh
+from renderer.mesh import Material, ObjectMesh, ProxyMesh
 from worker.augmentation.annotations import CameraView, FrameAnnotation
-from worker.augmentation.frame import CameraRecord, ChunkResult, FrameRecord
+from worker.augmentation.frame import CameraRecord, ChunkResult, FrameRecord, ObjectFrame
 from worker.augmentation.gauge import GaugeLabel
-from worker.augmentation.plan import Plan
+from worker.augmentation.plan import Plan, PlannedObject
 from worker.augmentation.spec import AugmentSpec
 
 #: Version of the record layout; a record of another version is refused. Bumped whenever
 #: a stored type's fields change.
-VERSION = 1
+VERSION = 2
 PLAN_FORMAT = "osdar-ar.plan"
 CHUNK_FORMAT = "osdar-ar.chunk"
 _HEADER = "__header__"
@@ -51,14 +51,17 @@ ALLOWED: dict[str, type] = {
     t.__name__: t
     for t in (
         Plan,
+        PlannedObject,
         AugmentSpec,
         CameraModel,
         ObjectMesh,
+        Material,
         ProxyMesh,
         Lighting,
         GaugeLabel,
         ChunkResult,
         FrameRecord,
+        ObjectFrame,
         CameraRecord,
         FrameAnnotation,
         CameraView,

@@ -1,10 +1,22 @@
 """The augmentation job spec: small typed sections, defaults in one place.
 
 One :class:`AugmentSpec` says everything the augmentation step needs besides the
-sequence and its preparation: which object, where, which cameras, the lidar, the frame
-range, the localization strategy (for the preparation), the lidar ray origins and the
-render options. The CLI builds it from its flags, the service from its ``JobCreate`` JSON
-(:meth:`AugmentSpec.from_job_spec`).
+sequence and its preparation: which objects, where (and how they move), which cameras,
+the lidar, the frame range, the localization strategy (for the preparation), the lidar ray
+origins and the render options. The CLI builds it from its flags, the service from its
+``JobCreate`` JSON (:meth:`AugmentSpec.from_job_spec`).
+
+Objects: one object as ``object`` + ``placement`` (+ ``motion``), the form every job had
+so far, or several as ``objects``, a list of ``{object, placement, motion}``
+(:class:`SceneObject`); :attr:`AugmentSpec.scene_objects` is the list either way. Each
+object is annotated on its own (its own uid); they hide each other in the images and the
+lidar.
+
+Moving objects (``motion``, :class:`MotionModel`): a path of waypoints in track
+coordinates ``(s, offset)`` (as a track placement: m from the first frame's position
+along the ego track, m left of it) or in world coordinates ``(x, y)``, walked at
+``speed_mps`` from the first waypoint; the object faces its direction of travel (plus
+``yaw_deg``). Its pose is evaluated at each sensor's own timestamp of every frame.
 
 Lidar origins (``lidar_origins``):
 
@@ -134,6 +146,49 @@ class PlacementModel(_Section):
         return cls.from_spec(parse_place(text))
 
 
+class MotionModel(_Section):
+    """A moving object's path (module docstring).
+
+    mode : ``track``: waypoints are ``(s, offset)`` m in the track placement's coordinates
+        (s from the first frame's position along the ego track, offset left +);
+        ``world``: ``(x, y)`` m in the sequence's world frame (height snapped).
+    path : two or more waypoints; the object walks the polyline at ``speed_mps``.
+    start_s : seconds after the first frame of the range the object sets off (it waits at
+        the first waypoint until then).
+    end : at the last waypoint ``stop`` (stand there) or ``bounce`` (walk back, and so on).
+    yaw_deg : the object's heading relative to its direction of travel (0: its +x, the
+        front of the built-ins, leads).
+    gait : the built-in person swings legs and arms in step with the distance walked
+        (renderer/assets/walk_cycle.py); other objects are rigid.
+    """
+
+    mode: Literal["track", "world"] = "track"
+    path: tuple[tuple[float, float], ...] = Field(min_length=2, max_length=256)
+    speed_mps: float = Field(gt=0.0, le=50.0)
+    start_s: float = Field(0.0, ge=0.0, le=3600.0)
+    end: Literal["stop", "bounce"] = "stop"
+    yaw_deg: float = 0.0
+    gait: bool = True
+
+    @model_validator(mode="after")
+    def _finite_path(self) -> MotionModel:
+        pts = np.asarray(self.path, dtype=np.float64)
+        if not np.all(np.isfinite(pts)) or not np.isfinite(self.yaw_deg):
+            raise ValueError("motion path and yaw_deg must be finite")
+        if float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) < 1e-3:
+            raise ValueError("motion path must have a length (its waypoints all coincide)")
+        return self
+
+
+class SceneObject(_Section):
+    """One object of a job: what (``object``), where (``placement``) and, for a moving
+    object, its ``motion`` (which then decides the position; the placement is not used)."""
+
+    object: ObjectSource
+    placement: PlacementModel = Field(default_factory=PlacementModel)
+    motion: MotionModel | None = None
+
+
 class RenderSpec(_Section):
     """Render and composite options.
 
@@ -162,8 +217,11 @@ class RenderSpec(_Section):
 class AugmentSpec(_Section):
     """Everything the augmentation step needs besides the sequence (module docstring)."""
 
-    object: ObjectSource
+    object: ObjectSource | None = None
     placement: PlacementModel = Field(default_factory=PlacementModel)
+    motion: MotionModel | None = None
+    #: several objects (give either ``object`` or ``objects``)
+    objects: tuple[SceneObject, ...] = Field(default=(), max_length=32)
     cameras: tuple[str, ...] | None = None  # None: DEFAULT_CAMERAS the sequence has
     lidar: bool = True
     frame_range: tuple[int, int] | None = None  # inclusive frame indices
@@ -173,6 +231,20 @@ class AugmentSpec(_Section):
     render: RenderSpec = Field(default_factory=RenderSpec)
     #: the clearance envelope of the gauge labels (worker/augmentation/gauge.py)
     gauge: GaugeOutline = Field(default_factory=GaugeOutline)
+
+    @model_validator(mode="after")
+    def _objects(self) -> AugmentSpec:
+        if (self.object is None) == (not self.objects):
+            raise ValueError("give exactly one of 'object' (one object) and 'objects' (a list)")
+        return self
+
+    @property
+    def scene_objects(self) -> list[SceneObject]:
+        """The objects of the job: ``objects``, or the one ``object`` with its placement."""
+        if self.objects:
+            return list(self.objects)
+        assert self.object is not None
+        return [SceneObject(object=self.object, placement=self.placement, motion=self.motion)]
 
     @field_validator("frame_range")
     @classmethod
@@ -229,26 +301,17 @@ class AugmentSpec(_Section):
         the shadow strength to 0; ``clicks`` ({camera: {frame: [u, v]}}) become the
         preparation's clicks of a landmark named ``job``.
         """
-        obj = d.get("object") or {}
-        if obj.get("builtin") is not None:
-            source = ObjectSource(
-                builtin=obj["builtin"],
-                scale=float(obj.get("scale", 1.0)),
-                seed=int(obj.get("seed", 0)),  # a campaign's variation seed
+        if d.get("objects"):
+            if d.get("object") is not None:
+                raise ValueError("give either 'object' or 'objects', not both")
+            objects = tuple(
+                _scene_object(o, f"objects[{i}]", mesh_bytes, file_type)
+                for i, o in enumerate(d["objects"])
             )
-        elif obj.get("asset_id") is not None:
-            if mesh_bytes is None or file_type is None:
-                raise ValueError(
-                    f"object asset {obj['asset_id']!r}: pass its mesh_bytes and file_type"
-                )
-            source = ObjectSource(
-                mesh_bytes=mesh_bytes, file_type=file_type, scale=float(obj.get("scale", 1.0))
-            )
+            one = {"object": None, "objects": objects}
         else:
-            raise ValueError("object needs 'builtin' or 'asset_id'")
-        pl = dict(d.get("placement") or {"mode": "track"})
-        if pl.get("mode", "track") == "track":
-            pl.setdefault("yaw_deg", 0.0)  # JobCreate's default
+            only = _scene_object(d, "", mesh_bytes, file_type)
+            one = {"object": only.object, "placement": only.placement, "motion": only.motion}
         render = dict(d.get("render") or {})
         shadow = render.pop("shadow", True)
         render_spec = RenderSpec(
@@ -260,8 +323,7 @@ class AugmentSpec(_Section):
         clicks = d.get("clicks")
         fr = d.get("frame_range")
         return cls(
-            object=source,
-            placement=PlacementModel.model_validate(pl),
+            **one,
             cameras=tuple(d["cameras"]) if d.get("cameras") else None,
             lidar=bool(d.get("lidar", True)),
             frame_range=None if fr is None else (int(fr[0]), int(fr[1])),
@@ -269,6 +331,39 @@ class AugmentSpec(_Section):
             clicks=None if not clicks else {"landmark": "job", "clicks": clicks},
             render=render_spec,
         )
+
+
+def _scene_object(
+    d: dict[str, Any], where: str, mesh_bytes: bytes | None, file_type: str | None
+) -> SceneObject:
+    """A job spec's ``{object, placement, motion}`` (``where`` names it in errors)."""
+    at = f"{where}: " if where else ""
+    obj = d.get("object") or {}
+    if obj.get("builtin") is not None:
+        source = ObjectSource(
+            builtin=obj["builtin"],
+            scale=float(obj.get("scale", 1.0)),
+            seed=int(obj.get("seed", 0)),  # a campaign's variation seed
+        )
+    elif obj.get("asset_id") is not None:
+        if mesh_bytes is None or file_type is None:
+            raise ValueError(
+                f"{at}object asset {obj['asset_id']!r}: pass its mesh_bytes and file_type"
+            )
+        source = ObjectSource(
+            mesh_bytes=mesh_bytes, file_type=file_type, scale=float(obj.get("scale", 1.0))
+        )
+    else:
+        raise ValueError(f"{at}object needs 'builtin' or 'asset_id'")
+    pl = dict(d.get("placement") or {"mode": "track"})
+    if pl.get("mode", "track") == "track":
+        pl.setdefault("yaw_deg", 0.0)  # JobCreate's default
+    motion = d.get("motion")
+    return SceneObject(
+        object=source,
+        placement=PlacementModel.model_validate(pl),
+        motion=None if motion is None else MotionModel.model_validate(motion),
+    )
 
 
 def _parse_point(text: str) -> tuple[float, float, float] | None:
@@ -285,8 +380,10 @@ def _parse_point(text: str) -> tuple[float, float, float] | None:
 __all__ = [
     "DEFAULT_CAMERAS",
     "AugmentSpec",
+    "MotionModel",
     "ObjectSource",
     "PlacementError",
     "PlacementModel",
     "RenderSpec",
+    "SceneObject",
 ]
