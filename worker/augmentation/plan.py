@@ -435,9 +435,7 @@ def _footprints_overlap(objs: list[ObjectMesh], placed: list[_Placed]) -> list[s
     return out
 
 
-def _level_of_detail(
-    obj: ObjectMesh, view: _Opened, positions: F64
-) -> tuple[ObjectMesh, float]:
+def _level_of_detail(obj: ObjectMesh, view: _Opened, positions: F64) -> tuple[ObjectMesh, float]:
     """The mesh the cameras render, simplified for the largest projected height (px) over
     the frames (and, for a moving object, over its ``positions`` (k, 3)), and that
     height."""
@@ -612,9 +610,11 @@ def _planned_object(
     obj_render, h_px = _level_of_detail(obj, view, positions)
     placement["projected_height_px_max"] = h_px
     T0 = pl.T_first
-    seed = f"osdar-ar/{seq_name}/{so.object.class_name}/" + ",".join(
-        f"{v:.3f}" for v in T0[:3, 3]
-    ) + (f"#{index}" if index else "")
+    seed = (
+        f"osdar-ar/{seq_name}/{so.object.class_name}/"
+        + ",".join(f"{v:.3f}" for v in T0[:3, 3])
+        + (f"#{index}" if index else "")
+    )
     po = PlannedObject(
         index=index, obj_class=so.object.class_name, seed=seed, obj_full=obj,
         obj_render=obj_render, T_world_obj=T0, placement=placement, poses=poses,
