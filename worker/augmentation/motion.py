@@ -95,8 +95,8 @@ def _moving(motion: MotionModel, t_rel: F64) -> NDArray[np.bool_]:
     total = float(np.linalg.norm(np.diff(np.asarray(motion.path), axis=0), axis=1).sum())
     dt = np.asarray(t_rel, dtype=np.float64) - motion.start_s
     if motion.end == "stop":
-        return (dt > 0.0) & (motion.speed_mps * dt < total)
-    return dt > 0.0
+        return (dt >= 0.0) & (motion.speed_mps * dt < total)
+    return dt >= 0.0
 
 
 def snap_heights(proxies: ProxyMesh | None, p_world: F64) -> F64:
