@@ -70,8 +70,9 @@ def simplify(mesh: ObjectMesh, target_faces: int) -> ObjectMesh:
     -------
     ObjectMesh with <= ~target_faces faces; colours and reflectivity of each new vertex
     from the nearest original vertex; meta copied with ``lod_faces`` set. A mesh with
-    UVs (textured) is returned as a copy, undecimated. Materials: a single-material
-    mesh keeps its material (e.g. a triplanar procedural texture).
+    UVs (textured) is returned as a copy, undecimated; materials without UVs (plain,
+    triplanar procedural textures) are kept, each new face taking the material of the
+    original vertex nearest to its first vertex.
     """
     target = max(int(target_faces), 4)
     if len(mesh.faces) <= target or mesh.uv is not None:
@@ -91,18 +92,15 @@ def simplify(mesh: ObjectMesh, target_faces: int) -> ObjectMesh:
     meta = dict(mesh.meta)
     meta["lod_faces"] = len(f)
     logger.debug("simplify %s: %d -> %d faces", mesh.name, len(mesh.faces), len(f))
-    mats, fm = mesh.surface
-    colors = mesh.colors
-    if len(np.unique(fm)) <= 1:
-        keep = [mats[int(fm[0]) if len(fm) else 0]]
-    else:  # several untextured materials: their base colours baked into the vertices
-        vm = np.zeros(len(mesh.vertices), np.int64)
-        vm[mesh.faces[:, 0]] = fm
-        colors = colors * np.stack([m.base_color[:3] for m in mats])[vm].astype(np.float32)
-        keep = []
-    return ObjectMesh(
-        v, f, colors[nearest], mesh.reflectivity[nearest], mesh.name, meta, materials=keep
-    )
+    # materials (no UVs here: plain or triplanar) carried over like the colours, each
+    # new face taking the material of its first vertex's nearest original vertex
+    fm = None
+    if mesh.materials:
+        vm = np.zeros(len(mesh.vertices), np.int32)
+        vm[mesh.faces[:, 0]] = mesh.surface[1]
+        fm = vm[nearest[f[:, 0]]]
+    return ObjectMesh(v, f, mesh.colors[nearest], mesh.reflectivity[nearest], mesh.name, meta,
+                      materials=list(mesh.materials), face_material=fm)  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------

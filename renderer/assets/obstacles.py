@@ -55,7 +55,8 @@ from renderer.assets.sdf import (
     part_ellipsoid,
     part_sphere,
 )
-from renderer.mesh import ObjectMesh
+from renderer.assets.textures import detail_material
+from renderer.mesh import PLAIN, Material, ObjectMesh
 
 F64 = NDArray[np.float64]
 logger = logging.getLogger(__name__)
@@ -115,8 +116,11 @@ def _finish(
     name: str,
     meta: dict,
     recolor: Callable[[F64, NDArray[np.int64], list[str], F64, NDArray], None] | None = None,
+    textures: dict[str, str] | None = None,
 ) -> ObjectMesh:
-    """Colour an :class:`SdfMesh` by region and re-centre it on its ground footprint."""
+    """Colour an :class:`SdfMesh` by region and re-centre it on its ground footprint;
+    ``textures`` maps regions to a procedural detail texture kind (renderer.assets.textures,
+    mapped triplanarly; a face takes its first vertex's region)."""
     v = sm.vertices.copy()
     v[:, 2] -= v[:, 2].min()
     lo, hi = v[:, :2].min(axis=0), v[:, :2].max(axis=0)
@@ -132,6 +136,16 @@ def _finish(
     size = float(np.ptp(v, axis=0).max())
     noise = SmoothNoise(rng, frequency=3.0 / max(size, 0.3), octaves=3)
     colors *= (1.0 + jit_by_label[sm.labels] * 2.0 * noise(v))[:, None]
+    materials: list[Material] = []
+    face_material = None
+    if textures:
+        tex_seed = int(rng.integers(2**31))
+        kinds = sorted(set(textures.values()))
+        materials = [detail_material(k, tex_seed) for k in kinds] + [PLAIN]
+        by_label = np.array([kinds.index(textures[n]) if n in textures else len(kinds)
+                             for n in sm.label_names])  # fmt: skip
+        face_material = by_label[sm.labels[sm.faces[:, 0]]].astype(np.int32)
+        meta["textures"] = {n: textures[n] for n in sm.label_names if n in textures}
     mesh = ObjectMesh(
         vertices=v,
         faces=sm.faces,
@@ -139,6 +153,8 @@ def _finish(
         reflectivity=np.clip(refl, 0.0, 1.0).astype(np.float32),
         name=name,
         meta=meta,
+        materials=materials,
+        face_material=face_material,
     )
     ext = mesh.size
     meta.update(
@@ -195,72 +211,213 @@ SHOES = ["#1a1a1a", "#3b2a1d", "#e8e8e8", "#55524e"]
 HIVIS = ["#f6ff00", "#ff7a00"]
 
 
-def build_person(rng: np.random.Generator, detail: float) -> ObjectMesh:
-    """A standing adult, facing +x, arms slightly swung, 1.60-1.90 m tall."""
+PERSON_POSES = ("standing", "walking", "lying", "crouching", "sitting")
+"""Poses of the built-in person (``pose`` of :func:`build_obstacle`)."""
+
+# Segment lengths and joint heights as fractions of the stature H (standing; close to
+# Drillis & Contini's body segment proportions, the eye at 0.936 H).
+_HIP, _KNEE, _ANKLE, _SHOULDER, _HEAD_C = 0.50, 0.275, 0.045, 0.805, 0.934
+_THIGH, _SHANK = _HIP - _KNEE, _KNEE - _ANKLE
+_UPPER_ARM, _FOREARM, _HAND = 0.185, 0.15, 0.045
+# Lying on the back across the object frame: body up (+z) -> +y, front (+x) -> +z.
+_R_LIE_BACK = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+
+
+@dataclass
+class _PersonPose:
+    """Joint angles (deg): trunk lean forward; per side (left, right) hip flexion (knee
+    forward), knee flexion, shoulder flexion (arm forward), elbow flexion; pelvis height
+    (fraction of H; None: the lower foot stands on the ground)."""
+
+    lean: float
+    hip: tuple[float, float]
+    knee: tuple[float, float]
+    shoulder: tuple[float, float]
+    elbow: tuple[float, float]
+    pelvis: float | None = None
+
+
+def _person_pose(pose: str, rng: np.random.Generator) -> _PersonPose:
+    u = rng.uniform
+    if pose == "standing":
+        st, sw = u(-4, 4), u(-6, 6)
+        return _PersonPose(u(-2, 3), (st, -st), (u(0, 4), u(0, 4)), (-sw, sw),
+                           (u(5, 15), u(5, 15)))  # fmt: skip
+    if pose == "walking":
+        st, sw = u(15, 24), u(14, 24)
+        lead = 1.0 if rng.random() < 0.5 else -1.0
+        return _PersonPose(u(2, 6), (lead * st, -lead * st), (u(2, 8), u(8, 20)),
+                           (-lead * sw, lead * sw), (u(10, 25), u(10, 25)))  # fmt: skip
+    if pose == "crouching":  # deep squat: knees up, feet under the hips
+        f = u(100, 120)
+        hips = (f, f + u(-8, 8))
+        pelvis = u(0.20, 0.26)
+        return _PersonPose(u(25, 40), hips, _knees_to_ground(hips, pelvis, behind=True),
+                           (u(35, 65), u(35, 65)), (u(20, 45), u(20, 45)), pelvis)  # fmt: skip
+    if pose == "sitting":  # on the ground, knees raised, feet in front
+        f = u(100, 130)
+        hips = (f, f + u(-15, 10))
+        pelvis = 0.048
+        hands_back = rng.random() < 0.4
+        sh = (u(-40, -25), u(-40, -25)) if hands_back else (u(30, 55), u(30, 55))
+        return _PersonPose(u(-12, 5), hips, _knees_to_ground(hips, pelvis, behind=False), sh,
+                           (u(5, 15), u(5, 15)) if hands_back else (u(25, 50), u(25, 50)),
+                           pelvis)  # fmt: skip
+    if pose == "lying":
+        spread = u(2, 8)
+        return _PersonPose(0.0, (spread, -spread * u(0.5, 1.0)), (u(0, 10), u(0, 25)),
+                           (u(-8, 8), u(-8, 8)), (u(0, 20), u(0, 20)))  # fmt: skip
+    raise ValueError(f"unknown person pose {pose!r}; known: {PERSON_POSES}")
+
+
+def _knees_to_ground(hips: tuple[float, float], pelvis: float, behind: bool) -> tuple[float, float]:
+    """Knee flexions (deg) that put the ankles on the ground (ankle height) for these hip
+    flexions and pelvis height (fractions of H); the foot behind or in front of the knee."""
+    out = []
+    for f in hips:
+        knee_z = pelvis - _THIGH * np.cos(np.radians(f))
+        c = float(np.clip((knee_z - _ANKLE) / _SHANK, -1.0, 1.0))
+        shank = -np.degrees(np.arccos(c)) if behind else np.degrees(np.arccos(c))
+        out.append(float(f - shank))
+    return out[0], out[1]
+
+
+def _dir_xz(angle_deg: float) -> F64:
+    """Unit vector down (-z) turned forward (+x) by ``angle_deg``."""
+    a = np.radians(angle_deg)
+    return np.array([np.sin(a), 0.0, -np.cos(a)])
+
+
+def build_person(rng: np.random.Generator, detail: float, pose: str | None = None) -> ObjectMesh:
+    """An adult of stature 1.60-1.90 m, facing +x, in one of ``PERSON_POSES`` (default
+    standing): varied build, skin, hair and clothes (and a hi-vis vest now and then).
+
+    Lying: on the back with the body along the object's y axis (head at +y), so a
+    placement that puts the object's x along the track lays the person across the rails.
+    Crouching and sitting (on the ground, knees up) keep the feet on the ground.
+    """
+    pose = pose or "standing"
+    pose_rng = np.random.default_rng(rng.integers(2**62))  # the same person in every pose
     H = rng.uniform(1.60, 1.90)
-    build = rng.uniform(0.9, 1.15)  # girth
+    build = rng.uniform(0.88, 1.18)  # girth
     w = 0.5 * H * build  # half-widths scale with build, heights with H
-    step = rng.uniform(-0.08, 0.08)  # walking stance: + = left leg forward
-    swing = rng.uniform(-18.0, 18.0)  # arm swing (deg), opposite to the legs
     long_sleeves = rng.random() < 0.6
     hivis = rng.random() < 0.25
+    shorts = rng.random() < 0.15
+    pp = _person_pose(pose, pose_rng)
+
+    # pelvis height: from the pose, or the lower ankle on the ground
+    ankles_below_hip = [
+        _THIGH * H * _dir_xz(pp.hip[i]) + _SHANK * H * _dir_xz(pp.hip[i] - pp.knee[i])
+        for i in (0, 1)
+    ]
+    if pp.pelvis is None:
+        P_z = _ANKLE * H - min(float(a[2]) for a in ankles_below_hip)
+    else:
+        P_z = pp.pelvis * H
+    P = np.array([0.0, 0.0, P_z])
+    Rt = _rot("y", pp.lean)  # trunk: +z leans towards +x
+
+    def trunk(x: float, y: float, z: float) -> F64:
+        """A point given in the standing body (z in fractions of H above the hips)."""
+        return P + Rt @ np.array([x, y, z])
 
     parts: list[Part] = []
     # head, hair, neck
-    hc = np.array([0.0, 0.0, H - 0.066 * H])
-    parts.append(part_ellipsoid(hc, [0.057 * H, 0.046 * H, 0.066 * H], "skin"))
-    parts.append(part_ellipsoid(hc + [0.012 * H, 0, -0.035 * H], [0.05 * H, 0.04 * H, 0.03 * H],
-                                "skin", blend=0.02))  # jaw  # fmt: skip
-    hair_r = np.array([0.058, 0.048, 0.06]) * H * rng.uniform([1.0, 1.0, 1.0], [1.1, 1.05, 1.1])
-    parts.append(part_ellipsoid(hc + [-0.018 * H, 0, 0.014 * H], hair_r, "hair", blend=0.01))
-    parts.append(part_capsule([0, 0, 0.80 * H], [0.004 * H, 0, 0.885 * H], 0.032 * H, 0.028 * H,
-                              "skin", blend=0.02))  # fmt: skip
+    hc = trunk(0.0, 0.0, (_HEAD_C - _HIP) * H)
+    parts.append(part_ellipsoid(hc, [0.057 * H, 0.046 * H, 0.066 * H], "skin", R=Rt))
+    parts.append(part_ellipsoid(hc + Rt @ [0.012 * H, 0, -0.035 * H],
+                                [0.05 * H, 0.04 * H, 0.03 * H], "skin", 0.02, R=Rt))  # fmt: skip
+    hair_r = np.array([0.058 * rng.uniform(1.0, 1.1), 0.048 * rng.uniform(1.0, 1.05), 0.06]) * H
+    parts.append(part_ellipsoid(hc + Rt @ [-0.018 * H, 0, 0.006 * H], hair_r, "hair", 0.01,
+                                R=Rt))  # fmt: skip
+    parts.append(part_capsule(trunk(0, 0, 0.30 * H), trunk(0.004 * H, 0, 0.385 * H), 0.032 * H,
+                              0.028 * H, "skin", 0.02))  # fmt: skip
     # torso: chest, abdomen (shirt), pelvis (trousers)
     top = "vest" if hivis else "shirt"
-    parts.append(part_ellipsoid([0, 0, 0.725 * H], [0.13 * w, 0.235 * w, 0.105 * H], top, 0.04))
-    parts.append(part_ellipsoid([0.005 * H, 0, 0.60 * H], [0.125 * w, 0.20 * w, 0.09 * H], top,
-                                0.05))  # fmt: skip
-    parts.append(part_ellipsoid([0, 0, 0.515 * H], [0.12 * w, 0.205 * w, 0.06 * H], "trousers",
-                                0.04))  # fmt: skip
-    # legs
-    for side in (1.0, -1.0):
-        fwd = step * side * H
-        hip = np.array([0.0, side * 0.105 * w, 0.50 * H])
-        knee = np.array([0.5 * fwd + 0.01 * H, side * 0.10 * w, 0.275 * H])
-        ankle = np.array([fwd, side * 0.095 * w, 0.045 * H])
+    parts.append(part_ellipsoid(trunk(0, 0, 0.225 * H), [0.13 * w, 0.235 * w, 0.105 * H], top,
+                                0.04, R=Rt))  # fmt: skip
+    parts.append(part_ellipsoid(trunk(0.005 * H, 0, 0.10 * H), [0.125 * w, 0.20 * w, 0.09 * H],
+                                top, 0.05, R=Rt))  # fmt: skip
+    parts.append(part_ellipsoid(trunk(0, 0, 0.015 * H), [0.12 * w, 0.205 * w, 0.06 * H],
+                                "trousers", 0.04, R=Rt))  # fmt: skip
+    # legs (hips on the pelvis, not leaning with the trunk)
+    for i, side in enumerate((1.0, -1.0)):
+        hip = P + np.array([0.0, side * 0.105 * w, 0.0])
+        knee = hip + _THIGH * H * _dir_xz(pp.hip[i]) + [0, -side * 0.005 * w, 0]
+        shank_dir = _dir_xz(pp.hip[i] - pp.knee[i])
+        ankle = knee + _SHANK * H * shank_dir + [0, -side * 0.005 * w, 0]
+        lower = "skin" if shorts else "trousers"
         parts.append(part_capsule(hip, knee, 0.075 * w, 0.052 * w, "trousers", 0.03))
-        parts.append(part_capsule(knee, ankle, 0.05 * w, 0.036 * w, "trousers", 0.02))
-        parts.append(part_box(ankle + [0.04 * H, 0, -0.025 * H], [0.075 * H, 0.028 * H, 0.024 * H],
-                              0.018 * H, "shoes", 0.02))  # fmt: skip
-    # arms (swing opposite to the legs), slightly abducted
-    for side in (1.0, -1.0):
-        sh = np.array([0.0, side * 0.255 * w, 0.805 * H])
-        R = _rot("yx", [-swing * side, side * 6.0])
-        elbow = sh + R @ np.array([0.0, 0.0, -0.185 * H])
-        R2 = _rot("yx", [-swing * side - abs(swing) * 0.6 - 8.0, side * 3.0])
-        wrist = elbow + R2 @ np.array([0.0, 0.0, -0.15 * H])
-        hand = wrist + R2 @ np.array([0.0, 0.0, -0.045 * H])
+        parts.append(part_capsule(knee, ankle, 0.05 * w, 0.036 * w, lower, 0.02))
+        # the foot flat on the ground unless the shank tilts a lot (lying: along it)
+        tilt = pp.hip[i] - pp.knee[i]
+        foot_tilt = tilt if abs(tilt) > 30.0 else 0.0
+        Rf = _rot("y", -foot_tilt)
+        parts.append(part_box(ankle + Rf @ [0.04 * H, 0, -0.025 * H],
+                              [0.075 * H, 0.028 * H, 0.024 * H], 0.018 * H, "shoes", 0.02,
+                              R=Rf))  # fmt: skip
+    # arms: shoulder flexion forward, slight abduction, elbow flexion forward
+    for i, side in enumerate((1.0, -1.0)):
+        sh = trunk(0.0, side * 0.255 * w, (_SHOULDER - _HIP) * H)
+        abd = np.radians(6.0)
+        d1 = Rt @ _dir_xz(pp.shoulder[i]) if pose != "sitting" else _dir_xz(pp.shoulder[i])
+        d1 = d1 + np.array([0.0, side * np.sin(abd), 0.0])
+        d1 /= np.linalg.norm(d1)
+        d2 = _rot("y", -pp.elbow[i]) @ d1  # forearm turned forward (towards +x)
+        elbow = sh + _UPPER_ARM * H * d1
+        wrist = elbow + _FOREARM * H * d2
+        hand = wrist + _HAND * H * d2
         parts.append(part_capsule(sh, elbow, 0.048 * w, 0.04 * w, top, 0.03))
         fore = top if long_sleeves else "skin"
         parts.append(part_capsule(elbow, wrist, 0.04 * w, 0.032 * w, fore, 0.015))
         parts.append(part_capsule(wrist, hand, 0.03 * w, 0.024 * w, "skin", 0.015))
 
+    eye = hc + Rt @ np.array([0.045 * H, 0.0, 0.0])
+    if pose == "lying":  # turned, then lifted clear of the ground cut (re-grounded later)
+        parts = [_turned(p, _R_LIE_BACK, np.zeros(3)) for p in parts]
+        lift = np.array([0.0, 0.0, -min(float(p.lo[2]) for p in parts)])
+        parts = [_turned(p, np.eye(3), lift) for p in parts]
+        eye = _R_LIE_BACK @ eye + lift
     voxel = 0.016 / detail
     sm = mesh_parts(parts, voxel)
-    s = H / float(np.ptp(sm.vertices[:, 2]))  # hair included
-    sm = _scale_z_x(sm, s, s)
     skin = _pick(rng, SKIN_TONES)
     regions = {
-        "skin": _region(skin, 0.04),
-        "hair": _region(_pick(rng, HAIR), 0.05),
-        "shirt": _region(_pick(rng, SHIRTS), 0.06),
+        "skin": _region(_vary(rng, skin, 0.06), 0.04),
+        "hair": _region(_vary(rng, _pick(rng, HAIR), 0.1), 0.05),
+        "shirt": _region(_vary(rng, _pick(rng, SHIRTS), 0.15), 0.06),
         "vest": _region(_pick(rng, HIVIS), 0.03, reflectivity=0.95),
-        "trousers": _region(_pick(rng, TROUSERS), 0.06),
+        "trousers": _region(_vary(rng, _pick(rng, TROUSERS), 0.15), 0.06),
         "shoes": _region(_pick(rng, SHOES), 0.04),
     }
-    meta = {"class": "person", "osdar_class": "person", "voxel_m": voxel,
-            "variant": "hivis" if hivis else "casual", "skin": skin}  # fmt: skip
-    return _finish(sm, regions, rng, "person", meta)
+    z0 = float(sm.vertices[:, 2].min())
+    meta = {"class": "person", "osdar_class": "person", "voxel_m": voxel, "pose": pose,
+            "variant": "hivis" if hivis else "casual", "skin": skin, "stature_m": H,
+            "build": build, "eye_height_m": float(eye[2] - z0),
+            "eye_height_standing_m": _HEAD_C * H}  # fmt: skip
+    detail_of = {"skin": "skin", "hair": "fur", "shirt": "cloth", "vest": "cloth",
+                 "trousers": "cloth", "shoes": "stone"}  # fmt: skip
+    return _finish(sm, regions, rng, "person", meta, textures=detail_of)
+
+
+def _turned(p: Part, R: F64, t: F64) -> Part:
+    """A part moved by x -> R x + t (its box: the moved box's bounds)."""
+    f0 = p.sdf
+
+    def f(x: F64) -> F64:
+        return f0((x - t) @ R)  # (x - t) @ R == R^T (x - t): back in the part's frame
+
+    corners = np.array([[a, b, c] for a in (p.lo[0], p.hi[0]) for b in (p.lo[1], p.hi[1])
+                        for c in (p.lo[2], p.hi[2])]) @ R.T + t  # fmt: skip
+    return Part(f, corners.min(axis=0), corners.max(axis=0), p.label, p.blend)
+
+
+def _vary(rng: np.random.Generator, hexcol: str, amount: float) -> F64:
+    """A colour (linear) with its brightness and tint jittered by up to ``amount``."""
+    c = _hex(hexcol) if isinstance(hexcol, str) else np.asarray(hexcol)
+    gain = rng.uniform(1.0 - amount, 1.0 + amount)
+    tint = rng.uniform(1.0 - 0.4 * amount, 1.0 + 0.4 * amount, size=3)
+    return np.clip(c * gain * tint, 0.0, 1.0)
 
 
 # --------------------------------------------------------------------------------------
@@ -338,7 +495,9 @@ def build_cow(rng: np.random.Generator, detail: float) -> ObjectMesh:
     sm = _fit_size(sm, length, withers, (0.25, 0.65))
 
     scheme = str(_pick(rng, list(COW_SCHEMES)))
-    base, patch, thr = COW_SCHEMES[scheme]
+    base_hex, patch_hex, thr = COW_SCHEMES[scheme]
+    base, patch = _vary(rng, base_hex, 0.12), _vary(rng, patch_hex, 0.06)
+    thr = thr + rng.uniform(-0.15, 0.15)  # more or less of the patch colour
     regions = {
         "hide": _region(base, 0.06), "leg": _region(base, 0.06), "head": _region(base, 0.06),
         "muzzle": _region("#c98f86" if scheme == "holstein" else "#3a2a24", 0.05),
@@ -346,11 +505,13 @@ def build_cow(rng: np.random.Generator, detail: float) -> ObjectMesh:
         "horn": _region("#d8cdb0", 0.05), "tail_tuft": _region("#1a1816", 0.04),
     }  # fmt: skip
     ids = [sm.label_names.index(n) for n in ("hide", "leg", "head") if n in sm.label_names]
-    pc = _hex(patch)
-    recolor = _patches(rng, 1.6, ids, pc, reflectivity_of(pc), thr)
+    pc = patch
+    recolor = _patches(rng, rng.uniform(1.2, 2.2), ids, pc, reflectivity_of(pc), thr)
     meta = {"class": "cow", "osdar_class": "animal", "voxel_m": voxel, "variant": scheme,
             "withers_m": withers, "horns": horns}  # fmt: skip
-    return _finish(sm, regions, rng, "cow", meta, recolor)
+    return _finish(sm, regions, rng, "cow", meta, recolor,
+                   textures={"hide": "fur", "leg": "fur", "head": "fur", "udder": "skin",
+                             "muzzle": "skin", "horn": "stone", "hoof": "stone"})  # fmt: skip
 
 
 HORSE_COATS = {
@@ -409,7 +570,7 @@ def build_horse(rng: np.random.Generator, detail: float) -> ObjectMesh:
     sm = mesh_parts(p, voxel)
     sm = _fit_size(sm, length, withers, (0.2, 0.5))
     coat = str(_pick(rng, list(HORSE_COATS)))
-    body, dark = HORSE_COATS[coat]
+    body, dark = (_vary(rng, c, 0.12) for c in HORSE_COATS[coat])
     white_socks = rng.random() < 0.3
     regions = {
         "coat": _region(body, 0.05), "mane": _region(dark, 0.04),
@@ -418,7 +579,9 @@ def build_horse(rng: np.random.Generator, detail: float) -> ObjectMesh:
     }  # fmt: skip
     meta = {"class": "horse", "osdar_class": "animal", "voxel_m": voxel, "variant": coat,
             "withers_m": withers}  # fmt: skip
-    return _finish(sm, regions, rng, "horse", meta)
+    return _finish(sm, regions, rng, "horse", meta,
+                   textures={"coat": "fur", "mane": "fur", "lower_leg": "fur", "muzzle": "skin",
+                             "hoof": "stone"})  # fmt: skip
 
 
 def build_elephant(rng: np.random.Generator, detail: float) -> ObjectMesh:
@@ -460,9 +623,10 @@ def build_elephant(rng: np.random.Generator, detail: float) -> ObjectMesh:
     sm = mesh_parts(p, voxel)
     s_all = height / float(np.ptp(sm.vertices[:, 2]))
     sm = _scale_z_x(sm, s_all, s_all)
-    grey = str(_pick(rng, ["#6f6a66", "#7d7771", "#5f5a57", "#8a807a"]))
+    grey = _vary(rng, str(_pick(rng, ["#6f6a66", "#7d7771", "#5f5a57", "#8a807a", "#7a6656"])),
+                 0.1)  # fmt: skip
     regions = {
-        "skin": _region(grey, 0.08), "ear": _region(0.85 * _hex(grey), 0.1),
+        "skin": _region(grey, 0.08), "ear": _region(0.85 * grey, 0.1),
         "foot": _region("#5a5450", 0.05), "tusk": _region("#e9e0c8", 0.03),
         "tail_tuft": _region("#222020", 0.03),
     }  # fmt: skip
@@ -471,7 +635,9 @@ def build_elephant(rng: np.random.Generator, detail: float) -> ObjectMesh:
     ear_id = [sm.label_names.index("ear")]
     pink = _hex("#b59a8e")  # the depigmented, mottled ear edges of Asian elephants
     recolor = _patches(rng, 4.0, ear_id, pink, reflectivity_of(pink), 0.3)
-    return _finish(sm, regions, rng, "elephant", meta, recolor)
+    return _finish(sm, regions, rng, "elephant", meta, recolor,
+                   textures={"skin": "stone", "ear": "skin", "foot": "stone", "tusk": "skin",
+                             "tail_tuft": "fur"})  # wrinkled hide: the stone grain  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------
@@ -505,7 +671,7 @@ def build_rock(rng: np.random.Generator, detail: float) -> ObjectMesh:
     lichen = _hex(str(_pick(rng, ["#9a9a6a", "#59604a", "#a89f8c"])))
     recolor = _patches(rng, 4.0 / D, [0], lichen, reflectivity_of(lichen), 0.55)
     meta = {"class": "rock", "osdar_class": "obstacle", "voxel_m": voxel * s, "variant": tone}
-    mesh = _finish(sm, regions, rng, "rock", meta, recolor)
+    mesh = _finish(sm, regions, rng, "rock", meta, recolor, textures={"rock": "stone"})
     mesh.meta["size_m"] = float(max(mesh.meta["length_m"], mesh.meta["width_m"]))
     return mesh
 
@@ -582,7 +748,8 @@ def build_fallen_tree(rng: np.random.Generator, detail: float) -> ObjectMesh:
     meta = {"class": "fallen_tree", "osdar_class": "obstacle", "voxel_m": voxel,
             "variant": "dead" if dead else "green", "trunk_diameter_m": 2 * r0,
             "lod_faces_per_px": 170.0}  # foliage outline: see renderer.assets.lod  # fmt: skip
-    return _finish(sm, regions, rng, "fallen_tree", meta)
+    return _finish(sm, regions, rng, "fallen_tree", meta,
+                   textures={"bark": "bark", "roots": "bark", "foliage": "fur"})  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------
@@ -598,14 +765,15 @@ class ObstacleSpec:
     """
 
     name: str
-    builder: Callable[[np.random.Generator, float], ObjectMesh]
+    builder: Callable[..., ObjectMesh]
     ranges: dict[str, tuple[float, float]]
+    poses: tuple[str, ...] = ("standing",)
 
 
 OBSTACLES: dict[str, ObstacleSpec] = {
     s.name: s
     for s in (
-        ObstacleSpec("person", build_person, {"height_m": (1.6, 1.9)}),
+        ObstacleSpec("person", build_person, {"stature_m": (1.6, 1.9)}, PERSON_POSES),
         ObstacleSpec("rock", build_rock, {"size_m": (0.4, 1.2)}),
         ObstacleSpec("fallen_tree", build_fallen_tree, {"length_m": (5.0, 10.0)}),
         ObstacleSpec("cow", build_cow, {"withers_m": (1.3, 1.5), "length_m": (2.2, 2.6)}),
@@ -619,11 +787,12 @@ _ALIASES = {"tree": "fallen_tree", "indian_elephant": "elephant", "human": "pers
 
 
 @lru_cache(maxsize=32)
-def _build_cached(name: str, seed: int, detail: float) -> ObjectMesh:
+def _build_cached(name: str, seed: int, detail: float, pose: str | None) -> ObjectMesh:
     spec = OBSTACLES[name]
     rng = np.random.default_rng([int(seed) & (2**63 - 1), list(OBSTACLES).index(name)])
-    mesh = spec.builder(rng, detail)
+    mesh = spec.builder(rng, detail, pose) if len(spec.poses) > 1 else spec.builder(rng, detail)
     mesh.meta.update({"seed": int(seed), "detail": float(detail)})
+    mesh.meta.setdefault("pose", "standing")
     logger.info(
         "built %s seed %d detail %.2f: %d faces, size %s m",
         name,
@@ -636,7 +805,7 @@ def _build_cached(name: str, seed: int, detail: float) -> ObjectMesh:
 
 
 def build_obstacle(
-    name: str, *, seed: int = 0, detail: float = 1.0, scale: float = 1.0
+    name: str, *, seed: int = 0, detail: float = 1.0, scale: float = 1.0, pose: str | None = None
 ) -> ObjectMesh:
     """Build (or fetch from the in-process cache) one obstacle of the library.
 
@@ -647,6 +816,8 @@ def build_obstacle(
     seed : everything random (size within the range, pose, colours) follows from it.
     detail : grid resolution factor, 0.2-3; faces grow as ``detail ** 2``.
     scale : uniform factor on the final size (1 = real-world size).
+    pose : the person's pose, one of ``PERSON_POSES`` (default standing); the animals,
+        the rock and the tree have only ``standing`` (or None).
 
     Returns
     -------
@@ -660,16 +831,14 @@ def build_obstacle(
         raise ValueError(f"detail must be in [0.05, 4], got {detail}")
     if not (np.isfinite(scale) and scale > 0.0):
         raise ValueError(f"scale must be positive, got {scale}")
-    base = _build_cached(key, int(seed), round(float(detail), 4))
-    mesh = ObjectMesh(
-        base.vertices * scale,
-        base.faces.copy(),
-        base.colors.copy(),
-        base.reflectivity.copy(),
-        base.name,
-        copy.deepcopy(base.meta),
-    )
-    for k in ("length_m", "width_m", "height_m", "withers_m", "trunk_diameter_m", "size_m"):
+    poses = OBSTACLES[key].poses
+    if pose is not None and pose not in poses:
+        raise ValueError(f"{key} has no pose {pose!r}; its poses: {list(poses)}")
+    base = _build_cached(key, int(seed), round(float(detail), 4), pose)
+    mesh = base.with_vertices(base.vertices * scale)
+    mesh.meta = copy.deepcopy(base.meta)
+    for k in ("length_m", "width_m", "height_m", "withers_m", "trunk_diameter_m", "size_m",
+              "stature_m", "eye_height_m", "eye_height_standing_m"):  # fmt: skip
         if k in mesh.meta:
             mesh.meta[k] = float(mesh.meta[k] * scale)
     mesh.meta["scale"] = float(scale)
