@@ -206,7 +206,6 @@ def test_a_dry_run_prints_the_variants_and_makes_nothing(
         ({"placements": [{"zone": "runway"}]}, "placements[0].zone: Input should be"),
         ({"sequences": [{"path": "no/such/folder"}]}, "sequences[0].path: 'no/such/folder'"),
         ({"sequences": [{"id": "3f2a9c51"}]}, "sequences[0]: id '3f2a9c51' names a sequence"),
-        ({"objects_per_sequence": 2}, "objects_per_sequence: 2 objects per variant cannot"),
         ({"draws": 0}, "draws: Input should be greater than or equal to 1"),
         ({"obstacles": [{"asset_id": "a81b3c"}]}, "obstacles[0]: asset_id 'a81b3c' names a"),
         (
@@ -280,3 +279,41 @@ def test_an_interrupted_run_keeps_what_is_done_and_resumes(
     assert not partial.exists() and not (out / ".work").exists()
     doc, _ = _manifest(out)
     assert [v["state"] for v in doc["variants"]] == ["done", "done"]
+
+
+def test_several_objects_and_a_walker_in_one_variant(base: Path, seq: Path, cache: Path) -> None:
+    """objects_per_sequence 2 with a person crossing the track: one variant, both objects
+    annotated in its labels, the walker's motion and speed in the manifest."""
+    spec = _write(base / "multi.yaml", _spec(
+        seq, objects_per_sequence=2,
+        obstacles=[{"builtin": "person", "motion": {"pattern": "cross", "speed_mps": [1.2, 1.2],
+                                                    "span_m": 6}},
+                   {"builtin": "rock"}],
+        constraints={"min_spacing_m": 2.0},
+    ))  # fmt: skip
+    out = base / "multi_out"
+    assert _run([str(spec), "--out", str(out)], cache) == 0
+    doc, rows = _manifest(out)
+    (row,) = doc["variants"]
+    assert row["state"] == "done", row["error"]
+    walker, rock = row["objects"]
+    assert walker["speed_mps"] == 1.2 and walker["motion"]["mode"] == "track"
+    assert rock["speed_mps"] is None and rock["motion"] is None
+    assert walker["gauge"] is not None and rock["gauge"] is not None
+    assert rows[0]["objects"] == "2" and rows[0]["speed_mps"] == "1.2;"
+    with tarfile.open(out / row["archive"]) as tar:
+        labels = next(m for m in tar.getmembers() if m.name.endswith("_labels.json"))
+        raw = json.loads(tar.extractfile(labels).read())["openlabel"]
+    synthetic = [o for o in raw["objects"].values() if "_synthetic_" in o["name"]]
+    assert sorted(o["name"] for o in synthetic) == ["person_synthetic_0001",
+                                                    "rock_synthetic_0002"]  # fmt: skip
+    speeds = {
+        a["val"]
+        for fr in raw["frames"].values()
+        for ob in (fr.get("objects") or {}).values()
+        for cub in ob["object_data"].get("cuboid", [])
+        for a in cub["attributes"]["num"]
+        if a["name"] == "speedMps"
+    }
+    assert speeds == {0.0, 1.2}
+    assert Image.open(out / "contact_sheet.png").size[0] > 100

@@ -1,10 +1,11 @@
 """The campaign's contact sheet: one frame per variant in a labelled grid (PNG).
 
-Each variant's frame is the one where its object's bounding box is largest in the first
-camera of the job (the middle frame when the object shows in no frame); the box is drawn
-on it. The thumbnail is written when the variant finishes (``thumbs/<vid>.png``, read
-from the augmented output before it is archived), and the sheet is assembled from the
-thumbnails, so a resumed run does not open the archives again. Labels: the variant id and
+Each variant's frame is the one where its objects' bounding boxes are largest (their
+areas summed) in the first camera of the job (the middle frame when no object shows in
+any frame); the boxes are drawn on it. The thumbnail is written when the variant finishes
+(``thumbs/<vid>.png``, read from the augmented output before it is archived), and the
+sheet is assembled from the thumbnails, so a resumed run does not open the archives
+again. Labels: the variant id and
 sequence, the class and seed, the gauge flag and the paper RPE of the camera.
 """
 
@@ -13,7 +14,7 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -38,13 +39,15 @@ BOX_RGB = (255, 40, 40)
 
 @dataclass
 class ContactFrame:
-    """A variant's frame: its index, camera, RGB image and the object's bbox
-    [x_center, y_center, width, height] px (None: not visible, the middle frame)."""
+    """A variant's frame: its index, camera, RGB image and the (first) object's bbox
+    [x_center, y_center, width, height] px (None: not visible, the middle frame);
+    ``boxes``: every object's bbox in that frame."""
 
     frame_idx: int
     camera: str
     image: NDArray[np.uint8]
     bbox: tuple[float, float, float, float] | None
+    boxes: list[tuple[float, float, float, float]] = field(default_factory=list)
 
 
 def object_boxes(labels_raw: Mapping[str, Any], object_uuid: str, camera: str) -> dict[int, Any]:
@@ -58,21 +61,26 @@ def object_boxes(labels_raw: Mapping[str, Any], object_uuid: str, camera: str) -
     return out
 
 
-def contact_frame(seq_folder: str | Path, object_uuid: str | None, camera: str) -> ContactFrame:
-    """The frame of the augmented sequence where the object is largest in ``camera``."""
+def contact_frame(
+    seq_folder: str | Path, object_uuid: str | list[str] | None, camera: str
+) -> ContactFrame:
+    """The frame of the augmented sequence where the objects (one UUID or several) are
+    largest in ``camera``."""
     seq = Sequence.open(seq_folder)
-    boxes = {} if object_uuid is None else object_boxes(seq.labels.raw, object_uuid, camera)
-    if boxes:
-        f = max(sorted(boxes), key=lambda k: boxes[k][2] * boxes[k][3])
-        b = boxes[f]
-        bbox: tuple[float, float, float, float] | None = (b[0], b[1], b[2], b[3])
+    uuids = [object_uuid] if isinstance(object_uuid, str) else list(object_uuid or [])
+    per = [object_boxes(seq.labels.raw, u, camera) for u in uuids]
+    frames = sorted({f for boxes in per for f in boxes})
+    if frames:
+        f = max(frames, key=lambda k: sum(b[k][2] * b[k][3] for b in per if k in b))
+        boxes = [tuple(b[f]) for b in per if f in b]
+        bbox: tuple[float, float, float, float] | None = boxes[0]  # type: ignore[assignment]
     else:
-        frames = seq.frame_indices
-        f, bbox = frames[len(frames) // 2], None
+        all_frames = seq.frame_indices
+        f, bbox, boxes = all_frames[len(all_frames) // 2], None, []
     img = np.asarray(seq.image(f, camera))
     if img.ndim == 2:
         img = np.repeat(img[:, :, None], 3, axis=2)
-    return ContactFrame(f, camera, img.astype(np.uint8), bbox)
+    return ContactFrame(f, camera, img.astype(np.uint8), bbox, boxes)  # type: ignore[arg-type]
 
 
 def thumbnail(frame: ContactFrame, width: int = THUMB_WIDTH_PX) -> Image.Image:
@@ -80,9 +88,9 @@ def thumbnail(frame: ContactFrame, width: int = THUMB_WIDTH_PX) -> Image.Image:
     im = Image.fromarray(frame.image)
     k = width / im.width
     im = im.resize((width, max(1, round(im.height * k))), Image.Resampling.LANCZOS)
-    if frame.bbox is not None:
-        xc, yc, w, h = (v * k for v in frame.bbox)
-        draw = ImageDraw.Draw(im)
+    draw = ImageDraw.Draw(im)
+    for box in frame.boxes or ([] if frame.bbox is None else [frame.bbox]):
+        xc, yc, w, h = (v * k for v in box)
         draw.rectangle(
             [xc - w / 2 - 2, yc - h / 2 - 2, xc + w / 2 + 2, yc + h / 2 + 2],
             outline=BOX_RGB,
@@ -109,6 +117,10 @@ def tile_label(variant: Variant, record: VariantRecord | None) -> list[str]:
         return [f"{variant.id} {variant.sequence_label}", classes, state[:60]]
     g = record.gauge or {}
     flag = ("INTRUDES" if int(g.get("intrusion_frames") or 0) > 0 else "clear") if g else "no gauge"
+    if len(variant.objects) > 1 and g:
+        flag = f"{int(g.get('objects_intruding') or 0)}/{len(variant.objects)} intrude"
+    if any(o.motion is not None for o in variant.objects):
+        flag += "  moving"
     q = next(iter(record.quality.values()), {}) if record.quality else {}
     rpe = q.get("rpe_px_mean")
     rpe_txt = "RPE -" if rpe is None else f"RPE {rpe:.1f} px"

@@ -44,6 +44,7 @@ from worker.campaign.spec import (
     CampaignSpec,
     ExplicitPlacement,
     Obstacle,
+    ObstacleMotion,
     PlacementRule,
     SequenceEntry,
 )
@@ -60,6 +61,9 @@ log = logging.getLogger(__name__)
 
 #: Level of detail the footprints are measured at: the augmentation's default (spec.py).
 FOOTPRINT_DETAIL = 1.0
+#: Step (m) between the positions of a moving obstacle's path checked against the poles
+#: and the other objects.
+PATH_STEP_M = 0.25
 
 
 def _r(x: float, nd: int = 3) -> float:
@@ -235,8 +239,12 @@ class _Expansion:
         fp: Footprint,
         item: _Item,
         others: list[Placed],
-    ) -> tuple[Placed, ResolvedPosition] | Counter[str]:
-        """A position by rejection (module docstring); the refusal reasons when none."""
+        motion: ObstacleMotion | None = None,
+    ) -> tuple[list[Placed], ResolvedPosition, dict[str, Any] | None] | Counter[str]:
+        """A position (and a moving obstacle's path) by rejection (module docstring); the
+        refusal reasons when none. Returns the footprints the variant's later objects keep
+        away from (the position, or every position of the path), the resolved position
+        and the job motion."""
         c = self.spec.constraints
         rng = _rng(self.spec.seed, geom.key, item.placement, item.draw, item.obstacle, item.seed)
         reasons: Counter[str] = Counter()
@@ -262,6 +270,13 @@ class _Expansion:
             if why is not None:
                 reasons[why] += 1
                 continue
+            job_motion, spots = None, [placed]
+            if motion is not None:
+                job_motion = self.motion_job(motion, s_job, offset, rng)
+                why, spots = self.path_conflict(geom, fp, job_motion, others)
+                if why is not None:
+                    reasons[why] += 1
+                    continue
             p, heading = geom.pose(s, offset, yaw_deg)
             centre = p + np.array([0.0, 0.0, 0.5 * fp.height])
             seen = geom.first_view(centre, s, d_hi, rule.view_half_angle_deg)
@@ -271,14 +286,63 @@ class _Expansion:
             if seen[1] < d_lo:
                 reasons[f"first in view nearer than {d_lo:g} m (a curve hides it)"] += 1
                 continue
-            return placed, ResolvedPosition(
+            return spots, ResolvedPosition(
                 zone=rule.zone, s_m=_r(s), s_job_m=s_job, offset_m=offset, yaw_deg=yaw_deg,
                 heading_deg=_r((heading + 180.0) % 360.0 - 180.0),
                 xyz_world=(_r(p[0]), _r(p[1]), _r(p[2])),
                 first_view_frame=seen[0], distance_first_view_m=_r(seen[1]),
                 footprint_m=(_r(fp.size[0]), _r(fp.size[1])),
-            )  # fmt: skip
+            ), job_motion  # fmt: skip
         return reasons
+
+    # ---------------------------------------------------------------- motion
+    @staticmethod
+    def motion_job(
+        m: ObstacleMotion, s_job: float, offset: float, rng: np.random.Generator
+    ) -> dict[str, Any]:
+        """A moving obstacle's job ``motion``: the path through (s_job, offset), its
+        direction, speed and start drawn (spec.py's module docstring)."""
+        sign = 1.0 if rng.random() < 0.5 else -1.0
+        half = 0.5 * m.span_m
+        if m.pattern == "cross":
+            a, b = (s_job, offset - sign * half), (s_job, offset + sign * half)
+        else:
+            a, b = (s_job - sign * half, offset), (s_job + sign * half, offset)
+        return {
+            "mode": "track",
+            "path": [[_r(a[0]), _r(a[1])], [_r(b[0]), _r(b[1])]],
+            "speed_mps": _r(rng.uniform(*m.speed_mps)),
+            "start_s": _r(rng.uniform(*m.start_s)),
+            "gait": m.gait,
+        }
+
+    def path_conflict(
+        self, geom: SequenceGeometry, fp: Footprint, motion: dict[str, Any], others: list[Placed]
+    ) -> tuple[str | None, list[Placed]]:
+        """Why a moving obstacle's path may not be walked (None: it may), and its
+        positions every PATH_STEP_M (what the variant's later objects keep away from)."""
+        c = self.spec.constraints
+        (s_a, o_a), (s_b, o_b) = motion["path"]
+        length = math.hypot(s_b - s_a, o_b - o_a)
+        n = max(2, math.ceil(length / PATH_STEP_M) + 1)
+        yaw = math.atan2(o_b - o_a, s_b - s_a)
+        spots = [
+            Placed(fp, geom.s0_job + s_a + t * (s_b - s_a), o_a + t * (o_b - o_a), yaw)
+            for t in np.linspace(0.0, 1.0, n)
+        ]
+        for sp in spots:
+            lo, hi = sp.s_range()
+            if lo < 0.0 or hi > geom.length:
+                return f"its path leaves the prepared ego track (0..{geom.length:.0f} m)", spots
+            for pole in geom.poles:
+                if sp.distance_to_point(np.array([pole.s, pole.lateral])) < (
+                    pole.radius + c.clearance_m
+                ):
+                    return f"its path crosses pole {pole.id}", spots
+            for other in others:
+                if sp.distance_to(other) < c.min_spacing_m:
+                    return f"its path comes nearer than {c.min_spacing_m:g} m to an object", spots
+        return None, spots
 
     # ---------------------------------------------------------------- explicit
     def explicit(
@@ -378,9 +442,14 @@ class _Expansion:
                        else list(entry.frame_range)}  # fmt: skip
                 if len(objects) == 1:
                     job.update(object=objects[0].object, placement=objects[0].placement)
+                    if objects[0].motion is not None:
+                        job["motion"] = objects[0].motion
                 else:
-                    job["objects"] = [{"object": o.object, "placement": o.placement}
-                                      for o in objects]  # fmt: skip
+                    job["objects"] = [
+                        {"object": o.object, "placement": o.placement}
+                        | ({} if o.motion is None else {"motion": o.motion})
+                        for o in objects
+                    ]
                 n = len(variants)
                 variants.append(Variant(
                     index=n, id=f"v{n:04d}", key=variant_key(entry.key, job),
@@ -408,17 +477,32 @@ class _Expansion:
             fp = self.footprint(item.obstacle, item.seed)
             if fp is None:
                 return None, warnings
+            job_motion: dict[str, Any] | None = None
             if isinstance(p, ExplicitPlacement):
                 res = self.explicit(p, prepared, geom, fp, placed, where, warnings)
                 if res is None:
                     return None, warnings
                 spot, pos = res
+                spots = [] if spot is None else [spot]
                 placement = p.explicit.model_dump(mode="json")
+                if ob.motion is not None:
+                    if geom is None or spot is None or p.explicit.mode != "track":
+                        self.issue("error", where, (
+                            f"{ob.class_name} moves: its motion needs a track placement (mode "
+                            "track) on a sequence with an ego track, or a rule"))  # fmt: skip
+                        return None, warnings
+                    rng = _rng(self.spec.seed, geom.key, item.placement, item.draw,
+                               item.obstacle, item.seed, "motion")  # fmt: skip
+                    job_motion = self.motion_job(ob.motion, p.explicit.s, p.explicit.offset, rng)
+                    why, spots = self.path_conflict(geom, fp, job_motion, placed)
+                    if why is not None:
+                        self.issue("error", where, f"the explicit moving {ob.class_name}: {why}")
+                        return None, warnings
             else:
                 window = windows.get(item.placement)
                 if geom is None or window is None:
                     return None, warnings
-                got = self.draw_rule(p, window, geom, fp, item, placed)
+                got = self.draw_rule(p, window, geom, fp, item, placed, ob.motion)
                 if isinstance(got, Counter):
                     top = ", ".join(f"{why} ({n}x)" for why, n in got.most_common(3))
                     self.issue("error", where, (
@@ -427,15 +511,15 @@ class _Expansion:
                         f"{top}; widen distance_m, yaw_deg or lateral_m, or lower "
                         "min_spacing_m / objects_per_sequence"))  # fmt: skip
                     return None, warnings
-                spot, pos = got
+                spots, pos, job_motion = got
                 placement = {"mode": "track", "s": pos.s_job_m, "offset": pos.offset_m,
                              "yaw_deg": pos.yaw_deg}  # fmt: skip
-            if spot is not None:
-                placed.append(spot)
+            placed.extend(spots)
             objects.append(VariantObject(
                 obstacle=item.obstacle, class_name=ob.class_name, variation_seed=item.seed,
                 placement_index=item.placement, draw=item.draw,
                 object=ob.job_object(item.seed), placement=placement, resolved=pos,
+                motion=job_motion,
             ))  # fmt: skip
         return objects, warnings
 

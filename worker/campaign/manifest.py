@@ -4,13 +4,16 @@ A row (JSON)::
 
     variant, key, sequence, sequence_label, state ("done" | "failed" | "pending"), error,
     objects: [{class, seed, position: {zone, s_m, s_job_m, offset_m, yaw_deg,
-               heading_deg, xyz_world, distance_first_view_m, first_view_frame}}],
+               heading_deg, xyz_world, distance_first_view_m, first_view_frame},
+               speed_mps (None: static), motion (the job's path; None: static),
+               gauge (this object's, as below)}],
     gauge: {intrudes, intrusion_frames, annotated_frames, lateral_distance_m,
             track_distance_min_m, track_distance_max_m}        (None before it ran)
     quality: {camera: {rpe_px_mean, jitter_px_mean, bound_px_median}},
     strategy, annotated_frames, seconds, archive, archive_bytes, thumb
 
-``gauge`` is the object against the train's clearance envelope over its annotated frames
+``gauge`` is the object (all objects of a several-object variant: intrudes when any does)
+against the train's clearance envelope over its annotated frames
 (worker/augmentation/gauge.py): ``intrudes`` when it is inside the envelope in any of them,
 the lateral distance to the envelope's side (m, negative inside) and the distance along
 the track from the train (m, first and last annotated frame's range). ``quality`` is the
@@ -45,7 +48,17 @@ MANIFEST_CSV = "manifest.csv"
 #: The per-camera measures of the quality columns.
 QUALITY_MEASURES = ("rpe_px_mean", "jitter_px_mean", "bound_px_median")
 #: The objects' fields of the CSV (one value per object, joined by ";").
-OBJECT_FIELDS = ("class", "seed", "zone", "s_m", "offset_m", "yaw_deg", "distance_first_view_m")
+OBJECT_FIELDS = (
+    "class",
+    "seed",
+    "zone",
+    "s_m",
+    "offset_m",
+    "yaw_deg",
+    "distance_first_view_m",
+    "speed_mps",
+    "intrudes",
+)
 GAUGE_FIELDS = (
     "intrudes",
     "intrusion_frames",
@@ -112,6 +125,11 @@ def manifest_row(variant: Variant, record: VariantRecord | None) -> dict[str, An
         for o in variant.objects
     ]
     r = record
+    gauges = [] if r is None else list(r.object_gauges)
+    for k, (row, o) in enumerate(zip(objects, variant.objects, strict=True)):
+        row["speed_mps"] = None if o.motion is None else o.motion.get("speed_mps")
+        row["motion"] = o.motion
+        row["gauge"] = _gauge(gauges[k]) if k < len(gauges) else None
     return {
         "variant": variant.id,
         "key": variant.key,
@@ -173,7 +191,9 @@ def flatten_row(row: Mapping[str, Any], cameras: list[str]) -> dict[str, str]:
     per_object: dict[str, list[Any]] = {
         "class": [o["class"] for o in obj],
         "seed": [o["seed"] for o in obj],
-        **{k: [o["position"].get(k) for o in obj] for k in OBJECT_FIELDS[2:]},
+        **{k: [o["position"].get(k) for o in obj] for k in OBJECT_FIELDS[2:7]},
+        "speed_mps": [o.get("speed_mps") for o in obj],
+        "intrudes": [(o.get("gauge") or {}).get("intrudes") for o in obj],
     }
     gauge = row.get("gauge") or {}
     quality = row.get("quality") or {}

@@ -393,9 +393,9 @@ class SequenceGeometry:
             lo, hi = placed.lateral_range(clearance)
             if lo < BED_HALF_WIDTH and hi > -BED_HALF_WIDTH:
                 return "half on the track bed (its footprint reaches over the bed's edge)"
-        for k, other in enumerate(others):
+        for other in others:  # (a moving object's every position is one of them)
             if placed.distance_to(other) < min_spacing:
-                return f"nearer than {min_spacing:g} m to object {k} of the variant"
+                return f"nearer than {min_spacing:g} m to another object of the variant"
         return None
 
     # ------------------------------------------------------------------ view

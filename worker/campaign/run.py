@@ -4,9 +4,8 @@ The recipe (:func:`run_campaign` reads it top to bottom)::
 
     load_campaign        the spec file validated (errors name the file and the field)
     sequence_folders     each sequence entry's folder (the CLI needs ``path``)
-    check_runnable       what today's augmentation cannot render is refused up front
-                         (several objects per variant; uploaded assets, which live in
-                         the service's store)
+    check_runnable       what an embedded run cannot make is refused up front
+                         (uploaded assets, which live in the service's store)
     prepare_sequences    ONE preparation per sequence (the prepared cache), shared by all
                          of its variants
     expand_campaign      the deterministic expansion with resolved positions
@@ -36,9 +35,10 @@ evaluate_sequence`) depends on the sequence's preparation and the cameras only, 
 the object: it is computed once per sequence and written into every variant's
 ``metrics.json``, as a service job writes it.
 
-Several objects in one variant (``objects_per_sequence`` > 1) are refused: the
-augmentation renders one object per job today (:class:`~worker.augmentation.spec.
-AugmentSpec` has one ``object`` and one ``placement``).
+Several objects in one variant (``objects_per_sequence`` > 1) are one augmentation with
+``objects`` (:class:`~worker.augmentation.spec.AugmentSpec`): each object annotated, the
+objects hiding each other; the record's ``gauge`` is over all of them (intrudes when any
+does), ``object_gauges`` has each one's. Moving obstacles carry their ``motion``.
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ from worker.evaluation.evaluate import evaluate_sequence, plot_rpe_jitter
 from worker.json_values import jsonable
 from worker.osdar.errors import SequenceError
 from worker.packaging import build_archive, make_previews
-from worker.preparation.artifact import PreparedSequence
+from worker.preparation.artifact import PreparedSequence, cached_folder, read_artifact
 from worker.preparation.config import PrepareConfig
 from worker.preparation.prepare import PreparationError, prepare
 
@@ -89,7 +89,9 @@ class VariantRecord:
     """What one variant produced (``records/<vid>.json``); paths relative to the output.
 
     gauge : the augmentation's gauge summary (intrusion frames, lateral distance to the
-        envelope, distance along the track; worker/augmentation/gauge.py).
+        envelope, distance along the track; worker/augmentation/gauge.py); over all
+        objects of a several-object variant (:func:`combined_gauge`).
+    object_gauges : each object's gauge summary (the variant's objects' order).
     quality : per camera, ``rpe_px_mean`` / ``jitter_px_mean`` (the paper's RPE and
         jitter, chosen strategy) and ``bound_px_median`` (median of the per-frame 90 %
         placement bound over the frames the object is visible in).
@@ -108,6 +110,7 @@ class VariantRecord:
     annotated_frames: int | None = None
     visible_frames: dict[str, int] = field(default_factory=dict)
     gauge: dict[str, Any] | None = None
+    object_gauges: list[dict[str, Any] | None] = field(default_factory=list)
     quality: dict[str, dict[str, float | None]] = field(default_factory=dict)
     contact: dict[str, Any] | None = None
 
@@ -209,13 +212,8 @@ def check_assets(spec: CampaignSpec, spec_path: str | Path) -> None:
 
 
 def check_runnable(spec: CampaignSpec, spec_path: str | Path) -> None:
-    """Refuse what the augmentation cannot render today (module docstring)."""
-    if spec.objects_per_sequence > 1:
-        raise CampaignRunError(
-            f"{spec_path}: objects_per_sequence: {spec.objects_per_sequence} objects per "
-            "variant cannot be rendered yet (the augmentation places one object per job); "
-            "set objects_per_sequence: 1 (--dry-run still shows the expansion)"
-        )
+    """Refuse what an embedded run cannot make (module docstring): uploaded assets."""
+    check_assets(spec, spec_path)
 
 
 def prepare_config(spec: CampaignSpec) -> PrepareConfig:
@@ -240,13 +238,20 @@ def prepare_sequences(
     for i, entry in enumerate(spec.sequences):
         tic = time.perf_counter()
         try:
-            prepared[entry.key] = prepare(folders[entry.key], config, cache_dir=cache_dir)
+            got = prepare(folders[entry.key], config, cache_dir=cache_dir)
         except (SequenceError, PreparationError) as exc:
             raise CampaignRunError(
                 f"{spec_path}: sequences[{i}] ({entry.label}): cannot prepare: {exc}"
             ) from exc
+        reused = bool(got.summary.get("reused"))
+        if cache_dir is not None and not reused:
+            # expand on the cached artifact's numbers, as a resumed run will: a fresh
+            # preparation and its stored copy differ in the last bits, which can move a
+            # position rounded to the millimetre (same spec, same bytes)
+            got = read_artifact(cached_folder(cache_dir, got.key))
+            got.summary["reused"] = False
+        prepared[entry.key] = got
         seconds[entry.key] = time.perf_counter() - tic
-        reused = bool(prepared[entry.key].summary.get("reused"))
         log.info(
             "campaign %s: %s prepared in %.1f s (reused: %s)",
             spec.name,
@@ -352,13 +357,27 @@ class SequenceContext:
 
 
 def variant_augment_spec(variant: Variant) -> AugmentSpec:
-    """The augmentation spec of a one-object variant (a job spec's, as the service's)."""
-    if len(variant.objects) != 1:
-        raise CampaignRunError(
-            f"variant {variant.id}: {len(variant.objects)} objects: the augmentation places "
-            "one object per job"
-        )
+    """The augmentation spec of a variant (its job spec's, as the service's): one object,
+    or several (``objects``), moving ones with their ``motion``."""
     return AugmentSpec.from_job_spec(variant.job_spec())
+
+
+def combined_gauge(gauges: list[dict[str, Any] | None]) -> dict[str, Any] | None:
+    """The gauge summary over several objects: intrusion frames and annotated frames at
+    most (any object's), the smallest lateral distance, the track distances' span; the
+    one object's summary as is. None when no object has one."""
+    have = [g for g in gauges if g]
+    if len(gauges) == 1 or not have:
+        return have[0] if have else None
+    dists = [d for g in have for d in (g.get("track_distance_m") or [])]
+    return {
+        "intrusion_frames": max(int(g.get("intrusion_frames") or 0) for g in have),
+        "annotated_frames": max(int(g.get("annotated_frames") or 0) for g in have),
+        "lateral_distance_m": min(float(g["lateral_distance_m"]) for g in have),
+        "track_distance_m": [min(dists), max(dists)] if dists else None,
+        "objects_intruding": sum(int(g.get("intrusion_frames") or 0) > 0 for g in have),
+        "outline": have[0].get("outline"),
+    }
 
 
 def quality_of(
@@ -449,7 +468,8 @@ def run_variant(
         extra[f"report/previews/{p.name}"] = p
     # the contact frame is read from the output before the archive is made
     cameras = spec.camera_names(ctx.cameras)
-    frame = contact_frame(seq_out, (aug.get("object") or {}).get("uuid"), cameras[0])
+    uuids = [o.get("uuid") for o in aug.get("objects") or [aug.get("object") or {}]]
+    frame = contact_frame(seq_out, [u for u in uuids if u], cameras[0])
     thumb = f"thumbs/{variant.id}.png"
     write_thumbnail(frame, out_dir / thumb)
     name = archive_name(variant)
@@ -465,7 +485,10 @@ def run_variant(
         strategy=ctx.prepared.strategy,
         annotated_frames=int(aug["frames"]["annotated"]),
         visible_frames={c: int(v["visible_frames"]) for c, v in aug["cameras"].items()},
-        gauge=aug.get("gauge"),
+        gauge=combined_gauge([o.get("gauge") for o in aug.get("objects") or []])
+        if aug.get("objects")
+        else aug.get("gauge"),
+        object_gauges=[o.get("gauge") for o in aug.get("objects") or []],
         quality=quality_of(evaluation, aug, cameras),
         contact={
             "frame": frame.frame_idx,
@@ -517,9 +540,7 @@ def run_campaign(
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     folders = sequence_folders(spec, spec_path, base)
-    check_assets(spec, spec_path)
-    if not dry_run:
-        check_runnable(spec, spec_path)
+    check_runnable(spec, spec_path)
     prepared, prepare_s = prepare_sequences(
         spec, folders, cache_dir=cache_dir, spec_path=spec_path, on_prepared=on_prepared
     )
@@ -614,6 +635,7 @@ __all__ = [
     "archive_name",
     "check_assets",
     "check_runnable",
+    "combined_gauge",
     "complete_record",
     "expand_campaign",
     "load_campaign",

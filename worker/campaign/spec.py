@@ -65,6 +65,24 @@ the front of the train) to the object when the object first comes into view: the
 frame (of the sequence's ``frame_range``) where it lies within ``view_half_angle_deg`` of
 the train's heading and no farther than the rule's upper distance.
 
+Moving obstacles: an obstacle with ``motion`` walks through its drawn (or explicit track)
+position, the middle of its path::
+
+    obstacles:
+      - builtin: person
+        motion: {pattern: cross, speed_mps: [1.0, 1.6], span_m: 8}   # across the track
+      - builtin: cow
+        motion: {pattern: along, speed_mps: [0.3, 0.8], span_m: 6}   # wandering along it
+
+``cross`` walks across the track (the path at the drawn arc length, from offset - span/2
+to offset + span/2), ``along`` along it (at the drawn offset, from s - span/2 to s +
+span/2); the direction (left or right, with or against the train) and the speed are
+drawn per object, ``start_s`` [low, high] seconds after the first frame. The zone's rules
+hold at the path's middle; along the whole path the object keeps ``clearance_m`` from the
+poles and ``min_spacing_m`` from the variant's other objects (every position of a moving
+one), and stays on the prepared track's extent. The variant's job carries the path in
+track coordinates (``motion``: :class:`~worker.augmentation.spec.MotionModel`).
+
 Variants: for each sequence, every (draw, placement, obstacle, variation seed) in this
 order is one object, where the placement applies to the sequence and the obstacle (its
 ``sequences`` and ``obstacles`` filters); consecutive objects are grouped
@@ -154,15 +172,44 @@ class SequenceEntry(_Spec):
         return self.id if self.id is not None else Path(str(self.path)).name
 
 
+class ObstacleMotion(_Spec):
+    """How an obstacle moves (module docstring): ``pattern`` cross or along the track
+    through its position, a path ``span_m`` long walked at a speed drawn from
+    ``speed_mps`` [low, high], setting off ``start_s`` [low, high] s after the first frame;
+    ``gait``: the built-in person swings legs and arms."""
+
+    pattern: Literal["cross", "along"] = "cross"
+    speed_mps: tuple[float, float] = (1.0, 1.6)
+    span_m: float = Field(8.0, gt=0.0, le=500.0)
+    start_s: tuple[float, float] = (0.0, 0.0)
+    gait: bool = True
+
+    @field_validator("speed_mps")
+    @classmethod
+    def _speed(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if v[0] <= 0.0 or v[1] > 50.0:
+            raise ValueError("speed_mps must lie within (0, 50] m/s")
+        return _range(v, "speed_mps")
+
+    @field_validator("start_s")
+    @classmethod
+    def _start(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if v[0] < 0.0 or v[1] > 3600.0:
+            raise ValueError("start_s must lie within [0, 3600] s")
+        return _range(v, "start_s")
+
+
 class Obstacle(ObjectSpec):
-    """An obstacle: today's job ``object`` (``builtin`` class or ``asset_id``, ``scale``)
-    and, for a built-in, its variation seeds (one obstacle per seed; default [0])."""
+    """An obstacle: today's job ``object`` (``builtin`` class or ``asset_id``, ``scale``),
+    for a built-in its variation seeds (one obstacle per seed; default [0]), and how it
+    moves (``motion``; None: it stands still)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     seeds: list[Annotated[int, Field(ge=0, le=2**31 - 1)]] | None = Field(
         None, min_length=1, max_length=1000, description="variation seeds of a built-in"
     )
+    motion: ObstacleMotion | None = None
 
     @model_validator(mode="after")
     def _seeds_for_builtins(self) -> Obstacle:
@@ -424,6 +471,7 @@ __all__ = [
     "ExplicitPlacement",
     "JobOptions",
     "Obstacle",
+    "ObstacleMotion",
     "PlacementEntry",
     "PlacementRule",
     "SequenceEntry",

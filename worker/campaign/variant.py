@@ -2,10 +2,11 @@
 objects' resolved positions, and the issues a validation reports.
 
 A variant's ``job`` holds today's job fields (``object``, ``placement``, ``cameras``,
-``lidar``, ``strategy``, ``frame_range``, ``render``) without ``sequence_id``
-(:meth:`Variant.job_spec` adds it). A variant of several objects carries ``objects``
-(a list of ``{object, placement}``) in place of ``object`` and ``placement``: the form
-a multi-object job will take once the augmentation renders several objects at once.
+``lidar``, ``strategy``, ``frame_range``, ``render``, and ``motion`` for a moving
+obstacle) without ``sequence_id`` (:meth:`Variant.job_spec` adds it). A variant of
+several objects carries ``objects`` (a list of ``{object, placement[, motion]}``) in place
+of ``object`` and ``placement``: the augmentation's multi-object job
+(:class:`~worker.augmentation.spec.AugmentSpec`, ``objects``).
 """
 
 from __future__ import annotations
@@ -53,7 +54,8 @@ class ResolvedPosition(_Out):
 class VariantObject(_Out):
     """One object of a variant: its obstacle (index into the spec's ``obstacles``, class,
     variation seed), today's job ``object`` and ``placement``, the resolved position, and
-    the placement it was drawn from (index into the spec's ``placements``) and the draw."""
+    the placement it was drawn from (index into the spec's ``placements``) and the draw;
+    a moving obstacle's job ``motion`` (the path in track coordinates, the speed)."""
 
     obstacle: int
     class_name: str
@@ -63,6 +65,7 @@ class VariantObject(_Out):
     object: dict[str, Any]
     placement: dict[str, Any]
     resolved: ResolvedPosition
+    motion: dict[str, Any] | None = None
 
 
 class Variant(_Out):
