@@ -26,7 +26,13 @@
 5. **Pixel offset**: the object and shadow layers are shifted by ``pixel_offset`` (du,
    dv) px with ``cv2.warpAffine`` (bilinear) before blending (calibration-error
    compensation).
-6. ``out = object_premultiplied + (1 - alpha) x shadowed_background``, linear -> sRGB,
+6. ``out = object_premultiplied + (1 - alpha) x shadowed_background``, linear -> sRGB.
+7. **Sensor noise** (``match_noise``): the frame's noise, measured per channel as a
+   function of intensity in the flat real pixels of the ROI grown by
+   ``NOISE_WINDOW_PX`` (object excluded; :mod:`renderer.sensor_noise`), is added to the
+   object's pixels in 8-bit units with std ``sigma(value) x sqrt(1 - (1 - alpha)^2)``
+   (the real background already brings ``1 - alpha`` of its own), seeded by
+   ``noise_seed`` and the ROI's corner (the same job gives the same bytes); then
    rounded to uint8.
 
 When ``render.roi`` is None the input array itself is returned (writers can then copy the
@@ -43,6 +49,7 @@ from numpy.typing import NDArray
 
 from renderer.lighting import linear_to_srgb, srgb_to_linear
 from renderer.object_render import ObjectRender
+from renderer.sensor_noise import NoiseProfile, add_noise, estimate_noise, noise_weight
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +60,7 @@ LAB_STD_BLEND = 0.5
 OPTICS_SIGMA_PX = 0.6  # at the sensor's full resolution
 APERTURE_M = 0.004  # effective aperture diameter of the front cameras (assumed)
 FEATHER_SIGMA_PX = 0.5
+NOISE_WINDOW_PX = 48
 _CHANGE_EPS = 1.0 / 4096.0
 _SRGB_LUT = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
 
@@ -135,6 +143,22 @@ def _lab_match(
     return out
 
 
+def frame_noise(frame_rgb: NDArray[np.uint8], render: ObjectRender) -> NoiseProfile | None:
+    """The frame's noise profile around the render's object (module doc, step 7)."""
+    if render.roi is None:
+        return None
+    u0, v0, u1, v1 = render.roi
+    H, W = frame_rgb.shape[:2]
+    m = NOISE_WINDOW_PX
+    a0, b0, a1, b1 = max(u0 - m, 0), max(v0 - m, 0), min(u1 + m, W), min(v1 + m, H)
+    exclude = np.zeros((b1 - b0, a1 - a0), bool)
+    exclude[v0 - b0 : v1 - b0, u0 - a0 : u1 - a0] = render.alpha > 0.02
+    prof = estimate_noise(frame_rgb, (a0, b0, a1, b1), exclude)
+    if prof is None:
+        log.debug("noise: too few flat pixels around roi %s: none added", render.roi)
+    return prof
+
+
 def composite(
     frame_rgb: NDArray[np.uint8],
     render: ObjectRender,
@@ -145,6 +169,8 @@ def composite(
     blur: bool = True,
     shadow_strength: float = 0.6,
     pixel_offset: tuple[float, float] = (0.0, 0.0),
+    match_noise: bool = True,
+    noise_seed: int = 0,
 ) -> NDArray[np.uint8]:
     """The frame (H, W, 3) uint8 sRGB with the rendered object (and its shadow) blended in.
 
@@ -200,7 +226,12 @@ def composite(
     real = frame[v0:v1, u0:u1]
     bg = _SRGB_LUT[real[changed]]  # (k, 3) linear
     res = layer[changed, :3] + (1.0 - a[changed, None]) * bg * (1.0 - sh[changed, None])
-    enc = np.round(linear_to_srgb(res) * 255.0).astype(np.uint8)
+    enc8 = linear_to_srgb(res).astype(np.float64) * 255.0
+    profile = frame_noise(frame, render) if match_noise else None
+    if profile is not None:
+        rng = np.random.default_rng([int(noise_seed) & (2**63 - 1), u0, v0, 0x5E45])
+        enc8 = add_noise(enc8, noise_weight(a[changed]), profile, rng)
+    enc = np.clip(np.round(enc8), 0, 255).astype(np.uint8)
     roi_out = out[v0:v1, u0:u1]
     roi_out[changed] = enc
     return out

@@ -1,0 +1,144 @@
+"""The camera's own noise: measured in a frame, given to the rendered object.
+
+A rendered object is noise-free; the real pixels around it are not, and a detector can
+learn that tell. :func:`estimate_noise` measures the frame's noise per channel as a
+function of intensity (sensor noise grows with the signal: shot noise) in flat regions
+near the object; :func:`add_noise` draws noise of that level for the object's pixels.
+
+Estimator (Immerkaer 1996, robust form): the 3 x 3 operator
+``N = [[1, -2, 1], [-2, 4, -2], [1, -2, 1]]`` (the difference of two Laplacians) cancels
+constant and linear image structure; on white noise of std sigma its response has std
+6 sigma. Per pixel of the window (8-bit sRGB values, the frame's own encoding):
+
+1. ``r = |N * I|`` and the local level ``m`` = 5 x 5 mean of ``I``;
+2. *flat* pixels: the gradient magnitude of the 3 x 3-smoothed channel below its
+   ``FLAT_PERCENTILE`` percentile in the window (edges and strong texture left out);
+   pixels of the object (and their 2 px surround) are excluded;
+3. per intensity bin (``BIN_EDGES``, 8-bit levels), with at least ``MIN_BIN_SAMPLES``
+   flat pixels: ``sigma = 1.4826 * median(r) / 6`` (the median makes the texture that
+   is left a minority that does not count). Bins without enough samples take the value
+   of the nearest bins (linear interpolation in the level, constant beyond the ends).
+
+What is not modelled: the noise's spatial correlation (demosaicing and compression make
+real noise somewhat blotchy; the object gets white noise of the measured per-pixel
+level) and the correlation between channels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+BIN_EDGES = np.array([0, 24, 48, 80, 112, 144, 176, 208, 256], np.float64)
+MIN_BIN_SAMPLES = 150
+MIN_SAMPLES = 400
+FLAT_PERCENTILE = 50.0
+_IMMERKAER = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+_MAD_TO_SIGMA = 1.4826 / 6.0
+
+
+@dataclass(frozen=True)
+class NoiseProfile:
+    """Noise std (8-bit units) per channel at intensity levels.
+
+    levels : (k,) bin centres (8-bit values); sigma : (3, k) std per channel there;
+    samples : flat pixels the estimate used.
+    """
+
+    levels: F64
+    sigma: F64
+    samples: int
+
+    def sigma_at(self, values: F64) -> F64:
+        """(n, 3) noise std at the 8-bit values (n, 3), per channel."""
+        v = np.asarray(values, np.float64).reshape(-1, 3)
+        return np.stack([np.interp(v[:, c], self.levels, self.sigma[c]) for c in range(3)], 1)
+
+
+def immerkaer_response(channel: NDArray[np.float32]) -> NDArray[np.float32]:
+    """|N * I| (same size; the border replicated) of one channel."""
+    return np.abs(cv2.filter2D(channel, cv2.CV_32F, _IMMERKAER, borderType=cv2.BORDER_REPLICATE))
+
+
+def robust_sigma(channel: NDArray, mask: NDArray[np.bool_] | None = None) -> float:
+    """Noise std of one channel over ``mask`` (all pixels when None): ``1.4826 *
+    median(|N * I|) / 6``; pixels whose 3 x 3 neighbourhood leaves the mask are left out.
+    NaN when fewer than 9 pixels remain."""
+    c = np.asarray(channel, np.float32)
+    r = immerkaer_response(c)
+    ok = np.ones(c.shape, bool) if mask is None else np.asarray(mask, bool)
+    ok = cv2.erode(ok.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                   borderValue=0).astype(bool)  # fmt: skip
+    if ok.sum() < 9:
+        return float("nan")
+    return float(_MAD_TO_SIGMA * np.median(r[ok]))
+
+
+def estimate_noise(
+    frame_rgb: NDArray[np.uint8],
+    window: tuple[int, int, int, int],
+    exclude: NDArray[np.bool_] | None = None,
+) -> NoiseProfile | None:
+    """The frame's noise in ``window`` (u0, v0, u1, v1), without the ``exclude`` pixels
+    (a mask of the window's shape: the object). None: too few flat pixels."""
+    u0, v0, u1, v1 = window
+    img = np.asarray(frame_rgb)[v0:v1, u0:u1].astype(np.float32)
+    if img.shape[0] < 8 or img.shape[1] < 8:
+        return None
+    keep = np.ones(img.shape[:2], np.uint8)
+    if exclude is not None:
+        keep[exclude] = 0
+    # the operator's 3 x 3 support and the 5 x 5 level must not touch excluded pixels
+    keep = cv2.erode(keep, np.ones((7, 7), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                     borderValue=0).astype(bool)  # fmt: skip
+    if keep.sum() < MIN_SAMPLES:
+        return None
+    levels = 0.5 * (BIN_EDGES[:-1] + BIN_EDGES[1:])
+    sig = np.full((3, len(levels)), np.nan)
+    n_used = 0
+    for c in range(3):
+        ch = np.ascontiguousarray(img[..., c])
+        r = immerkaer_response(ch)
+        m = cv2.blur(ch, (5, 5), borderType=cv2.BORDER_REPLICATE)
+        sm = cv2.GaussianBlur(ch, (3, 3), 0.8)
+        g = np.hypot(
+            cv2.Sobel(sm, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(sm, cv2.CV_32F, 0, 1, ksize=3)
+        )
+        flat = keep & (g <= np.percentile(g[keep], FLAT_PERCENTILE))
+        rv, mv = r[flat], m[flat]
+        n_used = max(n_used, int(flat.sum()))
+        idx = np.clip(np.searchsorted(BIN_EDGES, mv, side="right") - 1, 0, len(levels) - 1)
+        for k in range(len(levels)):
+            sel = idx == k
+            if sel.sum() >= MIN_BIN_SAMPLES:
+                sig[c, k] = _MAD_TO_SIGMA * float(np.median(rv[sel]))
+        good = np.isfinite(sig[c])
+        if not good.any():
+            if len(rv) < MIN_SAMPLES:
+                return None
+            sig[c] = _MAD_TO_SIGMA * float(np.median(rv))
+        else:
+            sig[c] = np.interp(levels, levels[good], sig[c, good])
+    return NoiseProfile(levels, sig, n_used)
+
+
+def add_noise(values: F64, weight: F64, profile: NoiseProfile, rng: np.random.Generator) -> F64:
+    """8-bit values (n, 3) with the profile's noise at their level, scaled by ``weight``
+    (n,) in [0, 1] (the share of the pixel that is noise-free: the object's coverage
+    after blending, see :func:`noise_weight`). Not rounded, not clipped."""
+    v = np.asarray(values, np.float64).reshape(-1, 3)
+    s = profile.sigma_at(v) * np.asarray(weight, np.float64).reshape(-1, 1)
+    return v + s * rng.standard_normal(v.shape)
+
+
+def noise_weight(alpha: F64) -> F64:
+    """Std factor of the noise to add where the object covers ``alpha`` of a pixel: the
+    real background brings ``(1 - alpha)`` of its own noise, so ``sqrt(1 - (1 - a)^2)``
+    completes the variance to the frame's."""
+    a = np.clip(np.asarray(alpha, np.float64), 0.0, 1.0)
+    return np.sqrt(np.clip(1.0 - (1.0 - a) ** 2, 0.0, 1.0))
