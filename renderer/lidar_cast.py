@@ -21,6 +21,26 @@ What this does not do (and why)
   point drifts along the track by up to speed x 50 ms within a sweep; that residual is
   not modelled.
 
+Sensor noise (:func:`estimate_lidar_noise`, ``range_sigma`` and ``dropout`` of
+:func:`cast_object`): object points get the range noise and the dropout rate of their
+own sensor, measured on the real points of the same ``sensor_index`` on the surfaces
+around the object (a shell ``NOISE_SHELL_M`` around its bounding sphere):
+
+- range noise: each point's distance to the plane fitted (PCA) to its
+  ``NOISE_NEIGHBOURS`` nearest neighbours of the same sensor (itself excluded), divided
+  by ``|cos(incidence)|`` (the plane residual of a range error e is e |cos|), robust std
+  (1.4826 MAD) over the non-degenerate neighbourhoods, corrected for the plane fit's own
+  error (x ``1 / sqrt(1 + 1 / k)``). It includes the surface's roughness (ballast);
+- dropout: rings are found as clusters of the elevation angle seen from the sensor's
+  origin; along a ring, sorted by azimuth, a gap of g azimuth steps (the ring's median
+  step) within a surface (g < ``MAX_GAP_STEPS``) holds g - 1 missing returns; dropout =
+  missing / (missing + returned). A sensor without ring structure (non-repetitive
+  scan patterns) gets 0 (``LidarNoise.rings`` = 0).
+
+A dropped object point is a ray that returned nothing: :func:`cast_object` removes it
+from the cloud (``LidarCastResult.kept``); with ``dropout = 0`` (the default) the point
+count is kept as described above.
+
 Numerics: the mesh, ray origins and directions are expressed in the object frame in
 float64 and only then cast to float32 for Embree (magnitudes of tens of metres: ~2 um);
 the new points are computed in float64 and stored in the field's dtype.
@@ -30,11 +50,12 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from geometry.transforms import invert_T, pose_to_T
 from renderer.mesh import ObjectMesh
@@ -45,6 +66,11 @@ logger = logging.getLogger(__name__)
 _MIN_RANGE_M = 1e-3
 """Points closer to their origin than this are never cast (no direction)."""
 _NOISE_TRUNCATION = 3.0
+NOISE_SHELL_M = 10.0
+NOISE_NEIGHBOURS = 20
+NOISE_MAX_POINTS = 4000
+MAX_GAP_STEPS = 6
+_RING_GAP_DEG = 0.12
 
 
 @dataclass
@@ -58,12 +84,17 @@ class LidarCastResult:
         annotation's ``vec``).
     moved : k.
     cos_incidence : (k,) float64 |cos| of the incidence angle at those points.
+    kept : None when no point was dropped (``fields`` has the input's length), else the
+        (n_out,) input index of every output point; ``object_indices`` then index the
+        output. dropped : input indices of the object rays that returned nothing.
     """
 
     fields: dict[str, np.ndarray]
     object_indices: NDArray[np.int64]
     moved: int
     cos_incidence: F64
+    kept: NDArray[np.int64] | None = None
+    dropped: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 def origins_from_json(entries: Sequence[Mapping]) -> dict[int, F64]:
@@ -140,8 +171,9 @@ def cast_object(
     *,
     intensity_scale: Mapping[int, float] | float = 255.0,
     seed: int = 0,
-    range_sigma: float = 0.0,
+    range_sigma: Mapping[int, float] | float = 0.0,
     intensity_noise: float = 0.0,
+    dropout: Mapping[int, float] | float = 0.0,
 ) -> LidarCastResult:
     """Cast ``mesh`` placed at ``T_base_obj`` into one lidar frame.
 
@@ -158,8 +190,11 @@ def cast_object(
         rounded when the input's intensities of that sensor are all integers.
     seed : seeds the optional noises below.
     range_sigma : Gaussian range noise (m, truncated at 3 sigma) added along the ray to
-        object points; 0 = exactly on the surface.
+        object points, per sensor_index (dict, e.g. from :func:`estimate_lidar_noise`)
+        or for all; 0 = exactly on the surface.
     intensity_noise : relative Gaussian intensity noise on object points.
+    dropout : probability that an object ray returns nothing (per sensor_index or for
+        all): such points are removed (``LidarCastResult.kept``).
 
     Returns
     -------
@@ -202,9 +237,10 @@ def cast_object(
 
     rng = np.random.default_rng([int(seed) & (2**63 - 1), 0x11DA2])
     t = t_hit[sel]
-    if range_sigma > 0.0:
+    sig = _per_point(fields, idx, range_sigma)
+    if np.any(sig > 0.0):
         noise = np.clip(rng.standard_normal(len(t)), -_NOISE_TRUNCATION, _NOISE_TRUNCATION)
-        t = np.minimum(t + range_sigma * noise, rng_m[sel])
+        t = np.minimum(t + sig * noise, rng_m[sel])
     q_obj = o_obj[idx] + t[:, None] * d[sel]
     q_base = q_obj @ T_base_obj[:3, :3].T + T_base_obj[:3, 3]
     for j, k in enumerate("xyz"):
@@ -227,7 +263,138 @@ def cast_object(
 
     logger.debug("lidar cast %s: %d candidates, %d points moved", mesh.name, len(cand), len(idx))
     order = np.argsort(idx)
-    return LidarCastResult(out, idx[order].astype(np.int64), len(idx), cos_inc[order])
+    idx, cos_inc = idx[order].astype(np.int64), cos_inc[order]
+    p_drop = _per_point(fields, idx, dropout)
+    if not np.any(p_drop > 0.0):
+        return LidarCastResult(out, idx, len(idx), cos_inc)
+    drop = rng.random(len(idx)) < p_drop
+    keep = np.ones(n, bool)
+    keep[idx[drop]] = False
+    kept = np.flatnonzero(keep)
+    new_pos = np.cumsum(keep) - 1
+    out = {k: v[keep] for k, v in out.items()}
+    stay = idx[~drop]
+    return LidarCastResult(out, new_pos[stay].astype(np.int64), len(stay), cos_inc[~drop],
+                           kept=kept, dropped=idx[drop])  # fmt: skip
+
+
+def _per_point(
+    fields: Mapping[str, np.ndarray], idx: NDArray[np.int64], value: Mapping[int, float] | float
+) -> F64:
+    """A per-sensor (dict) or global value at the points ``idx``; sensors missing in the
+    dict get 0."""
+    if not isinstance(value, Mapping):
+        return np.full(len(idx), float(value))
+    if "sensor_index" not in fields:
+        raise ValueError("per-sensor noise values need a sensor_index field in the cloud")
+    sidx = np.asarray(fields["sensor_index"]).astype(np.int64)[idx]
+    return np.array([float(value.get(int(s), 0.0)) for s in sidx], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class LidarNoise:
+    """One sensor's noise near the object (module docstring).
+
+    range_sigma_m : range noise std (m), NaN when not measurable; dropout : fraction of
+    rays without a return on the surfaces, 0 when not measurable; points : real points
+    used; rings : scan rings found (0: no ring structure).
+    """
+
+    range_sigma_m: float
+    dropout: float
+    points: int
+    rings: int
+
+
+def estimate_lidar_noise(
+    fields: Mapping[str, np.ndarray],
+    origins_base: Mapping[int, ArrayLike] | ArrayLike,
+    centre_base: ArrayLike,
+    radius: float,
+    *,
+    shell_m: float = NOISE_SHELL_M,
+    seed: int = 0,
+) -> dict[int, LidarNoise]:
+    """Range noise and dropout per sensor_index from the real points in the shell
+    ``radius < |p - centre_base| < radius + shell_m`` (base frame) around the object.
+
+    Returns {sensor_index: LidarNoise} (key 0 for a cloud without sensor_index).
+    """
+    xyz = np.stack([np.asarray(fields[k], dtype=np.float64) for k in "xyz"], axis=1)
+    o_all = point_origins(fields, origins_base)
+    d = np.linalg.norm(xyz - np.asarray(centre_base, np.float64).reshape(1, 3), axis=1)
+    shell = np.isfinite(d) & (d > radius) & (d < radius + shell_m)
+    sidx = (np.asarray(fields["sensor_index"]).astype(np.int64) if "sensor_index" in fields
+            else np.zeros(len(xyz), np.int64))  # fmt: skip
+    rng = np.random.default_rng([int(seed) & (2**63 - 1), 0x401CE])
+    out: dict[int, LidarNoise] = {}
+    for s in np.unique(sidx[shell]):
+        sel = np.flatnonzero(shell & (sidx == s))
+        p, o = xyz[sel], o_all[sel]
+        sigma = _range_sigma(p, o, rng)
+        drop, rings = _dropout(p, o)
+        out[int(s)] = LidarNoise(sigma, drop, len(sel), rings)
+        logger.debug("lidar noise sensor %d: %d points, range sigma %.4f m, dropout %.3f "
+                     "(%d rings)", s, len(sel), sigma, drop, rings)  # fmt: skip
+    return out
+
+
+def _range_sigma(p: F64, o: F64, rng: np.random.Generator) -> float:
+    """Robust range noise std (m) from plane residuals of the k nearest neighbours."""
+    k = NOISE_NEIGHBOURS
+    if len(p) < k + 1:
+        return float("nan")
+    tree = cKDTree(p)
+    probe = np.arange(len(p))
+    if len(probe) > NOISE_MAX_POINTS:
+        probe = np.sort(rng.choice(len(p), NOISE_MAX_POINTS, replace=False))
+    _, nb = tree.query(p[probe], k=k + 1)
+    nbrs = p[nb[:, 1:]]  # (m, k, 3), the point itself left out
+    c = nbrs.mean(axis=1)
+    q = nbrs - c[:, None]
+    cov = np.einsum("mki,mkj->mij", q, q) / k
+    w, v = np.linalg.eigh(cov)  # ascending
+    n = v[:, :, 0]
+    ok = w[:, 1] > 0.05 * w[:, 2]  # not collinear (one ring's points alone)
+    ray = p[probe] - o[probe]
+    ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
+    cos = np.abs(np.einsum("ij,ij->i", n, ray))
+    ok &= cos > 0.25
+    if ok.sum() < 20:
+        return float("nan")
+    r = np.einsum("ij,ij->i", p[probe] - c, n)[ok] / cos[ok]
+    mad = float(np.median(np.abs(r - np.median(r))))
+    return 1.4826 * mad / np.sqrt(1.0 + 1.0 / k)
+
+
+def _dropout(p: F64, o: F64) -> tuple[float, int]:
+    """(dropout fraction, rings found) from the azimuth gaps along elevation rings."""
+    v = p - o
+    rng_m = np.linalg.norm(v, axis=1)
+    el = np.degrees(np.arcsin(np.clip(v[:, 2] / np.maximum(rng_m, 1e-12), -1.0, 1.0)))
+    az = np.degrees(np.arctan2(v[:, 1], v[:, 0]))
+    order = np.argsort(el)
+    gaps = np.flatnonzero(np.diff(el[order]) > _RING_GAP_DEG)
+    rings = np.split(order, gaps + 1)
+    missing = returned = 0
+    n_rings = 0
+    for ring in rings:
+        if len(ring) < 20:
+            continue
+        a = np.sort(az[ring])
+        da = np.diff(a)
+        da = da[da > 1e-6]
+        if len(da) < 10:
+            continue
+        step = float(np.median(da))
+        g = np.round(da / step)
+        inside = g < MAX_GAP_STEPS
+        missing += int(np.sum(g[inside] - 1.0))
+        returned += int(inside.sum()) + 1
+        n_rings += 1
+    if n_rings < 2 or returned == 0:
+        return 0.0, 0
+    return missing / (missing + returned), n_rings
 
 
 def _intensity_values(

@@ -11,7 +11,13 @@ import trimesh
 
 from geometry.transforms import invert_T, make_T
 from renderer.assets.obstacles import build_obstacle
-from renderer.lidar_cast import cast_object, hidden_from, origins_from_json, point_origins
+from renderer.lidar_cast import (
+    cast_object,
+    estimate_lidar_noise,
+    hidden_from,
+    origins_from_json,
+    point_origins,
+)
 from renderer.mesh import ObjectMesh
 from worker.synth.lidar_sim import LidarSimulator, default_sensors, sensors_to_json
 from worker.synth.scene_mesh import MATERIAL_ID, SceneMesh
@@ -211,3 +217,68 @@ def test_per_sensor_origins_gain_over_single_origin(scan, true_origins) -> None:
     for name, label, mt, ms, sym, hs, rms in rows:
         print(f"{name:7s} {label:7s} {mt:11d} {ms:13d} {sym:8d} {hs:14.3f} {rms:7.3f}")
     assert max(r[5] for r in rows) > 0.0  # some single-origin points are impossible
+
+
+# ----------------------------------------------------------------- sensor noise and dropout
+def ring_cloud(sigma: float, drop: float, seed: int, origin=(0.0, 0.0, 2.0), sensor=0):
+    """A ring lidar (elevations -16..-2 deg every 0.5 deg, azimuth every 0.2 deg over
+    +-40 deg) at ``origin`` seeing the ground z = 0 and a wall x = 25: Gaussian range
+    noise ``sigma`` (m) and a random ``drop`` fraction of rays without return."""
+    rng = np.random.default_rng(seed)
+    el, az = np.meshgrid(np.radians(np.arange(-16.0, -1.9, 0.5)),
+                         np.radians(np.arange(-40.0, 40.0, 0.2)), indexing="ij")  # fmt: skip
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
+    o = np.asarray(origin, float)
+    t_ground = -o[2] / d[:, 2]
+    t_wall = np.where(d[:, 0] > 1e-9, (25.0 - o[0]) / np.maximum(d[:, 0], 1e-9), np.inf)
+    t = np.minimum(t_ground, t_wall)
+    t = t + sigma * rng.standard_normal(len(t))
+    keep = rng.random(len(t)) >= drop
+    p = o + t[keep, None] * d[keep]
+    n = len(p)
+    return {"x": p[:, 0].astype(np.float32), "y": p[:, 1].astype(np.float32),
+            "z": p[:, 2].astype(np.float32), "intensity": np.full(n, 10.0, np.float32),
+            "sensor_index": np.full(n, sensor, np.int32)}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("sigma", "drop", "seed"), [(0.02, 0.08, 0), (0.05, 0.0, 1), (0.01, 0.2, 2)]
+)
+def test_noise_and_dropout_measured_from_the_real_points(sigma, drop, seed) -> None:
+    a = ring_cloud(sigma, drop, seed, sensor=0)
+    b = ring_cloud(2 * sigma, 0.5 * drop, seed + 10, origin=(0.0, 0.3, 2.2), sensor=1)
+    cloud = {k: np.concatenate([a[k], b[k]]) for k in a}
+    origins = {0: np.array([0.0, 0.0, 2.0]), 1: np.array([0.0, 0.3, 2.2])}
+    est = estimate_lidar_noise(cloud, origins, centre_base=[15.0, 0.0, 0.8], radius=1.5)
+    for s, (sg, dr) in {0: (sigma, drop), 1: (2 * sigma, 0.5 * drop)}.items():
+        e = est[s]
+        assert 0.8 <= e.range_sigma_m / sg <= 1.25, (s, e)
+        assert abs(e.dropout - dr) < 0.025, (s, e)
+        assert e.rings >= 5 and e.points > 500
+
+
+def test_object_points_get_the_sensor_noise_and_dropout() -> None:
+    cloud = ring_cloud(0.0, 0.0, 5)
+    n = len(cloud["x"])
+    box = trimesh.creation.box(extents=(2.0, 6.0, 3.0))
+    v = np.asarray(box.vertices) + [0.0, 0.0, 1.5]
+    mesh = ObjectMesh(v, box.faces, np.full((len(v), 3), 0.5), np.full(len(v), 0.5))
+    T = np.eye(4)
+    T[:3, 3] = [15.0, 0.0, 0.0]
+    o = {0: np.array([0.0, 0.0, 2.0])}
+    exact = cast_object(cloud, mesh, T, o)
+    noisy = cast_object(cloud, mesh, T, o, range_sigma={0: 0.03}, dropout={0: 0.1}, seed=3)
+    assert exact.kept is None and len(exact.fields["x"]) == n
+    assert noisy.kept is not None and len(noisy.fields["x"]) == n - len(noisy.dropped)
+    assert abs(len(noisy.dropped) / exact.moved - 0.1) < 0.03
+    # the points kept on the object: their range error along the ray is the noise asked
+    src = noisy.kept[noisy.object_indices]
+    pos = {int(i): k for k, i in enumerate(exact.object_indices)}
+    j = np.array([pos[int(i)] for i in src])
+    p_exact = np.stack([exact.fields[k][exact.object_indices[j]] for k in "xyz"], 1).astype(float)
+    p_noisy = np.stack([noisy.fields[k][noisy.object_indices] for k in "xyz"], 1).astype(float)
+    err = np.linalg.norm(p_noisy - o[0], axis=1) - np.linalg.norm(p_exact - o[0], axis=1)
+    assert 0.8 <= float(np.std(err)) / 0.03 <= 1.25
+    # every other point is untouched
+    others = np.setdiff1d(np.arange(len(noisy.fields["x"])), noisy.object_indices)
+    np.testing.assert_array_equal(noisy.fields["x"][others], cloud["x"][noisy.kept[others]])
