@@ -142,3 +142,78 @@ def noise_weight(alpha: F64) -> F64:
     completes the variance to the frame's."""
     a = np.clip(np.asarray(alpha, np.float64), 0.0, 1.0)
     return np.sqrt(np.clip(1.0 - (1.0 - a) ** 2, 0.0, 1.0))
+
+
+# ---------------------------------------------------------------------------- sharpness
+_RISE_TO_SIGMA = 2.0 * 1.2815515655446004  # 10-90 % rise of a Gaussian-blurred step
+
+
+def edge_sigma_px(
+    gray: NDArray, points: F64, normals: F64, *, half_px: float = 6.0, min_contrast: float = 20.0
+) -> F64:
+    """Blur (Gaussian sigma, px) of step edges: at each point (n, 2) (u, v), the profile
+    along its unit normal (n, 2) over +-``half_px`` is read (bilinear), its ends give the
+    two levels, and the 10-90 % rise distance / 2.563 is the sigma. Profiles whose
+    contrast is below ``min_contrast`` or that are not monotonic enough are NaN."""
+    g = np.asarray(gray, np.float32)
+    t = np.arange(-half_px, half_px + 1e-9, 0.25, dtype=np.float32)
+    p = np.asarray(points, np.float32).reshape(-1, 2)
+    if len(p) == 0:
+        return np.zeros(0)
+    n = np.asarray(normals, np.float32)
+    mx = (p[:, 0:1] + t[None] * n[:, 0:1]).astype(np.float32)
+    my = (p[:, 1:2] + t[None] * n[:, 1:2]).astype(np.float32)
+    prof = cv2.remap(g, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(
+        np.float64
+    )
+    k = max(len(t) // 8, 2)
+    lo, hi = prof[:, :k].mean(1), prof[:, -k:].mean(1)
+    c = hi - lo
+    out = np.full(len(p), np.nan)
+    ok = np.abs(c) >= min_contrast
+    if not ok.any():
+        return out
+    f = (prof[ok] - lo[ok, None]) / c[ok, None]  # 0 -> 1 across the edge
+    f = np.maximum.accumulate(np.clip(f, 0.0, 1.0), axis=1)  # monotonic envelope
+    t10 = np.array([np.interp(0.1, fi, t) for fi in f])
+    t90 = np.array([np.interp(0.9, fi, t) for fi in f])
+    out[ok] = (t90 - t10) / _RISE_TO_SIGMA
+    return out
+
+
+def sharpness_inside_outside(
+    out_rgb: NDArray[np.uint8], roi: tuple[int, int, int, int], alpha: NDArray, ring_px: int = 48
+) -> tuple[float, float]:
+    """(median edge sigma of the object's silhouette, median edge sigma of the real
+    edges in a ring of ``ring_px`` around it) in the composited frame, px; NaN where no
+    edge qualified. Silhouette points: where the coverage crosses 0.5, normals from its
+    gradient; real edges: Canny edges of the frame outside the object's dilated mask,
+    normals from the image gradient."""
+    gray = cv2.cvtColor(np.asarray(out_rgb), cv2.COLOR_RGB2GRAY).astype(np.float32)
+    H, W = gray.shape
+    u0, v0, u1, v1 = roi
+    a = np.zeros((H, W), np.float32)
+    a[v0:v1, u0:u1] = alpha
+    a_s = cv2.GaussianBlur(a, (5, 5), 1.0)
+    gx, gy = cv2.Sobel(a_s, cv2.CV_32F, 1, 0), cv2.Sobel(a_s, cv2.CV_32F, 0, 1)
+    edge = (np.abs(a_s - 0.5) < 0.2) & (np.hypot(gx, gy) > 1e-3)
+    vs, us = np.nonzero(edge)
+    nrm = -np.stack([gx[vs, us], gy[vs, us]], 1)  # from the object outwards
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-9)
+    s_obj = edge_sigma_px(gray, np.stack([us, vs], 1).astype(float), nrm)
+    obj = (a > 0.02).astype(np.uint8)
+    near = cv2.dilate(obj, np.ones((2 * ring_px + 1,) * 2, np.uint8)).astype(bool)
+    away = ~cv2.dilate(obj, np.ones((15, 15), np.uint8)).astype(bool)
+    canny = cv2.Canny(np.clip(gray, 0, 255).astype(np.uint8), 40, 100).astype(bool) & near & away
+    vs, us = np.nonzero(canny)
+    sm = cv2.GaussianBlur(gray, (5, 5), 1.0)
+    ix, iy = cv2.Sobel(sm, cv2.CV_32F, 1, 0), cv2.Sobel(sm, cv2.CV_32F, 0, 1)
+    nr = np.stack([ix[vs, us], iy[vs, us]], 1)
+    nr /= np.maximum(np.linalg.norm(nr, axis=1, keepdims=True), 1e-9)
+    s_real = edge_sigma_px(gray, np.stack([us, vs], 1).astype(float), nr)
+
+    def med(x: F64) -> float:
+        x = x[np.isfinite(x)]
+        return float(np.median(x)) if len(x) >= 10 else float("nan")
+
+    return med(s_obj), med(s_real)

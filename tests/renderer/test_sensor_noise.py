@@ -3,12 +3,18 @@ composited object (robust noise ratio inside / outside in [0.8, 1.25], the issue
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
-from renderer.composite import composite
+from renderer.composite import FEATHER_SIGMA_PX, blur_sigma_px, composite
 from renderer.object_render import ObjectRender
-from renderer.sensor_noise import estimate_noise, robust_sigma
+from renderer.sensor_noise import (
+    edge_sigma_px,
+    estimate_noise,
+    robust_sigma,
+    sharpness_inside_outside,
+)
 
 H, W = 240, 320
 
@@ -113,3 +119,32 @@ def test_same_seed_same_bytes_and_no_noise_on_clean_frames() -> None:
     inner = np.zeros((H, W), bool)
     inner[v0 + 30 : v1 - 30, u0 + 30 : u1 - 30] = True
     assert robust_sigma(b[..., 1], inner) < 0.6  # a noise-free frame: nothing added
+
+
+# ----------------------------------------------------------------- sharpness
+@pytest.mark.parametrize("sigma", [0.8, 1.5, 2.5])
+def test_edge_sigma_recovers_a_known_blur(sigma: float) -> None:
+    rng = np.random.default_rng(int(sigma * 10))
+    img = np.full((100, 100), 60.0, np.float32)
+    img[:, 50:] = 180.0
+    img = cv2.GaussianBlur(img, (0, 0), sigma) + rng.normal(0, 2.0, img.shape)
+    pts = np.stack([np.full(60, 49.5), np.arange(20, 80)], 1)
+    s = edge_sigma_px(img, pts, np.tile([1.0, 0.0], (60, 1)))
+    assert abs(np.nanmedian(s) / sigma - 1.0) < 0.15
+
+
+def test_object_edges_as_sharp_as_the_frames() -> None:
+    """A frame whose real edges are blurred by the sigma the composite gives the object:
+    the measured silhouette and real-edge sigmas agree within [0.8, 1.25]."""
+    r = square(0.5)
+    want = float(np.hypot(blur_sigma_px(r), FEATHER_SIGMA_PX))
+    rng = np.random.default_rng(11)
+    clean = np.full((H, W, 3), 50.0, np.float32)
+    for x in range(20, W, 40):  # stripes: real edges all around the object
+        clean[:, x : x + 20] = 170.0
+    clean = cv2.GaussianBlur(clean, (0, 0), want)
+    img = np.clip(np.round(clean + rng.normal(0, 2.0, clean.shape)), 0, 255).astype(np.uint8)
+    out = composite(img, r, lab_match=False)
+    s_obj, s_real = sharpness_inside_outside(out, r.roi, r.alpha)
+    assert 0.8 <= s_obj / s_real <= 1.25, (s_obj, s_real, want)
+    assert abs(s_real / want - 1.0) < 0.2
