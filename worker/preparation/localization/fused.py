@@ -179,6 +179,22 @@ class Sigmas:
     ground_lags: tuple[int, ...] = GROUND_LAGS
     ground_sigma_a: tuple[float, float, float] = (0.0015, 0.005 * DEG, 0.001 * DEG)
     ground_sigma_b: tuple[float, float, float] = (0.0003, 0.0006 * DEG, 0.0003 * DEG)
+    #: Odometry pairs (:func:`_odometry_pairs`): KISS-ICP's relative pose of frames k and
+    #: k + lag for these lags, with sigmas ``a + b * lag`` (m) of frame j's position in
+    #: frame k along the track and laterally. Scan-to-map odometry does not drift like a
+    #: chain of independent steps: its error is mostly a per-frame registration error of
+    #: millimetres plus a slow drift, so its relative pose over 10 or 30 frames is far
+    #: better than the lag-1 steps' random walk says (fire_site, 60 frames: 13 mm over 30
+    #: frames where 30 independent 6 mm steps would be 33 mm). Its height and heading stay
+    #: out: the odometry runs without the ground and its pitch drift shows in the height
+    #: over a lag; its heading wanders against a good INS's.
+    odo_pair_lags: tuple[int, ...] = (10, 30)
+    odo_pair_t_a: tuple[float, float] = (0.02, 0.006)
+    odo_pair_t_b: tuple[float, float] = (0.0002, 0.0002)
+    #: Estimate the INS wander from the whole solution (:func:`wander_factors`).
+    estimate_wander: bool = True
+    #: Variance factors from redundancy numbers (:func:`variance_factors`).
+    redundancy_vce: bool = True
     att_bias: float = 1.0 * DEG
     pos_bias: float = 2.0
     att_bias_step: tuple[float, float, float] = (0.01 * DEG, 0.1 * DEG, 1.0 * DEG)
@@ -220,6 +236,9 @@ class Problem:
     #: the earlier frame's forward axis from the INS velocity, w (S,) 1/sigma
     #: (:func:`_velocity_steps`)
     vel: dict | None = None
+    #: Odometry pairs: k, j (Q,), T_k_j (Q, 4, 4), w (Q, 2): 1/sigma of frame j's
+    #: position in frame k along the track and laterally (:func:`_odometry_pairs`)
+    odo_pairs: dict | None = None
     #: Variance factors of the measurement blocks (:data:`SCALED_BLOCKS`), per component:
     #: each block's sigmas are multiplied by these (:func:`variance_factors`).
     scale: dict[str, F64] = field(default_factory=dict)
@@ -233,6 +252,9 @@ class Problem:
     #: steps; a dropped frame's longer step is accounted for)
     #: (key, Jacobian sparsity) cached by :func:`_cached_sparsity`
     structure: tuple[Any, csc_matrix] | None = None
+    #: (3,) the INS attitude's white noise (rad) the attitude sigmas were built from
+    #: (:func:`_ins_attitude_white`; None: ``sig.ins_r``)
+    ins_white: F64 | None = None
     diff2: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     diff3: F64 = field(default_factory=lambda: np.zeros((0, 4)))
 
@@ -434,6 +456,8 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
         kv = pb.vel["k"]
         along = np.einsum("ni,ni->n", R[kv][:, :, 0], p[kv + 1] - p[kv])
         out.append((along - pb.vel["d"]) * pb.vel["w"] / pb.s("ins_v"))
+    if pb.odo_pairs is not None:
+        out.append(_odometry_pair_residuals(pb, R, p).ravel())
     # smoothness
     if pb.n >= 3:
         c = pb.diff2
@@ -493,7 +517,14 @@ def _prior_blocks(x: F64, pb: Problem) -> F64:
 def _cached_sparsity(pb: Problem) -> csc_matrix:
     """:func:`sparsity`, built once per problem structure (solves and the information
     of one problem share it; building it is ~60 ms of Python for 100 frames)."""
-    key = (pb.n, pb.n_knots, pb.rail is None, pb.ground is None, pb.vel is None)
+    key = (
+        pb.n,
+        pb.n_knots,
+        pb.rail is None,
+        pb.ground is None,
+        pb.vel is None,
+        None if pb.odo_pairs is None else len(pb.odo_pairs["k"]),
+    )
     if pb.structure is None or pb.structure[0] != key:
         pb.structure = (key, sparsity(pb))
     return pb.structure[1]
@@ -548,6 +579,11 @@ def sparsity(pb: Problem) -> csc_matrix:
         for k in pb.vel["k"]:
             rows.append((r, frame_cols(int(k)) + frame_cols(int(k) + 1)))
             r += 1
+    if pb.odo_pairs is not None:
+        for k, j in zip(pb.odo_pairs["k"], pb.odo_pairs["j"], strict=True):
+            for _ in range(2):
+                rows.append((r, frame_cols(int(k)) + frame_cols(int(j))))
+                r += 1
     if n >= 3:
         for _ in range(2):  # position and rotation smoothness
             for k in range(n - 2):
@@ -750,10 +786,12 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         bias_step_sigma=bias_step,
         ground=ground,
         vel=_velocity_steps(inp, ins, health, sig) if n >= 2 else None,
+        odo_pairs=_odometry_pairs(inp, w_t, w_r, zupt, degenerate, health, sig),
         zupt=zupt,
         diff2=difference_weights(np.asarray(inp.times, dtype=np.float64), 2),
         diff3=difference_weights(np.asarray(inp.times, dtype=np.float64), 3),
         ins_r_share=_ins_attitude_factors(k, sig, bias_step, white),
+        ins_white=white,
         R_bias=_track_axes(R_ins_all),
     )
 
@@ -877,6 +915,69 @@ def _velocity_steps(
     forward = ins.T_world_base[k, :3, 0]
     d = np.einsum("ni,ni->n", forward, 0.5 * (v[k] + v[k + 1])) * dt[k]
     return {"k": k, "d": d, "w": 1.0 / (sigma_v * dt[k])}
+
+
+def _odometry_pairs(
+    inp: LocalizationInput,
+    w_t: F64,
+    w_r: F64,
+    zupt: NDArray[np.bool_],
+    degenerate: bool,
+    health: Health,
+    sig: Sigmas,
+) -> dict | None:
+    """KISS-ICP's relative positions over ``sig.odo_pair_lags`` frames as measurements.
+
+    A pair (k, k + lag) is kept when every step between its frames is a full-weight ICP
+    step (no skipped, slipping or degenerate step, no standstill: those steps' own
+    weights already say what the odometry is worth there); a run degenerate along the
+    track keeps only the lateral component. The lag-L pairs of consecutive k share L - 1
+    steps: their sigmas are multiplied by sqrt(L) so that together they count about as
+    one pair a lag apart. Returns k, j (Q,), T_k_j (Q, 4, 4) and w (Q, 2): 1/sigma of
+    frame j's position in frame k along the track and laterally."""
+    n = len(inp.frames)
+    lags = [int(L) for L in sig.odo_pair_lags if 0 < int(L) < n]
+    if not lags or len(w_t) == 0:
+        return None
+    try:
+        T = odometry_run(inp).T_odom_base
+    except Exception as exc:
+        health.warn(f"fused: no odometry pairs ({exc})")
+        return None
+    full = (w_t[:, 1] >= 0.99 / sig.odo_t) & (w_r >= 0.99 / sig.odo_r) & ~zupt
+    if not degenerate:
+        full &= w_t[:, 0] >= 0.99 / sig.odo_t
+    bad = np.concatenate([[0], np.cumsum(~full)])  # bad steps before frame i
+    ks, js, wt = [], [], []
+    for L in lags:
+        k = np.arange(n - L)
+        k = k[bad[k + L] - bad[k] == 0]
+        if not len(k):
+            continue
+        sigma = (np.asarray(sig.odo_pair_t_a) + L * np.asarray(sig.odo_pair_t_b)) * np.sqrt(L)
+        w = np.tile(1.0 / sigma, (len(k), 1))
+        if degenerate:
+            w[:, 0] = 0.0
+        ks.append(k)
+        js.append(k + L)
+        wt.append(w)
+    if not ks:
+        return None
+    k = np.concatenate(ks).astype(np.int64)
+    j = np.concatenate(js).astype(np.int64)
+    T_k_j = np.linalg.inv(T[k]) @ T[j]
+    health.metrics["fused_odometry_pairs"] = float(len(k))
+    return {"k": k, "j": j, "T_k_j": T_k_j, "w": np.concatenate(wt)}
+
+
+def _odometry_pair_residuals(pb: Problem, R: F64, p: F64) -> F64:
+    """(Q, 2) normalised residuals of the odometry pairs: frame j's position in frame k
+    against the odometry's, along the track and laterally (frame k's axes)."""
+    g = pb.odo_pairs
+    assert g is not None
+    B_t = np.einsum("nji,nj->ni", R[g["k"]], p[g["j"]] - p[g["k"]])
+    E_t = B_t[:, :2] - g["T_k_j"][:, :2, 3]
+    return E_t * g["w"] / pb.s("odo_pair")
 
 
 def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> dict | None:
@@ -1017,6 +1118,8 @@ def _frame_period(pb: Problem) -> int:
     gaps = {1, 2, 3} if pb.sig.jerk is not None else {1, 2}
     if pb.ground is not None:
         gaps |= {int(d) for d in np.unique(pb.ground["j"] - pb.ground["k"])}
+    if pb.odo_pairs is not None:
+        gaps |= {int(d) for d in np.unique(pb.odo_pairs["j"] - pb.odo_pairs["k"])}
     period = 3
     while any(d % period == 0 for d in gaps):
         period += 1
@@ -1177,6 +1280,7 @@ def misalignment(x: F64, n: int) -> InsToLidar:
 #: count (residuals are stacked as (rows, components)), in :func:`residuals`' order.
 SCALED_BLOCKS = (
     "odo_t", "odo_r", "ins_p", "ins_r", "rail_lat", "rail_vert", "rail_r", "ground", "ins_v",
+    "odo_pair",
 )  # fmt: skip
 #: Median of a chi-square variable with one degree of freedom: a robust variance factor
 #: of normalised residuals is ``median(r^2) / CHI2_1_MEDIAN``.
@@ -1198,6 +1302,8 @@ def measurement_blocks(pb: Problem, x: F64) -> dict[str, F64]:
         sizes.append(("ground", len(pb.ground["k"]), 3))
     if pb.vel is not None:
         sizes.append(("ins_v", len(pb.vel["k"]), 1))
+    if pb.odo_pairs is not None:
+        sizes.append(("odo_pair", len(pb.odo_pairs["k"]), 2))
     out, i = {}, 0
     for name, rows, comps in sizes:
         out[name] = r[i : i + rows * comps].reshape(rows, comps)
@@ -1205,28 +1311,92 @@ def measurement_blocks(pb: Problem, x: F64) -> dict[str, F64]:
     return out
 
 
-def variance_factors(pb: Problem, x: F64) -> dict[str, F64]:
-    """Per block and component, the factor (>= 1) by which its sigmas understate the scatter
-    of its own residuals at solution ``x`` (robust variance-component estimate).
+def redundancy(pb: Problem, x: F64) -> tuple[F64, F64, F64] | None:
+    """Per residual row at ``x``: the normalised residual r, its Huber weight w and its
+    redundancy number 1 - h (h: the diagonal of the hat matrix W^1/2 J N^-1 J^T W^1/2,
+    N = J^T W J). A row the solution can fit exactly has redundancy 0, a row nothing
+    depends on 1; they sum to rows - parameters. None when N cannot be factorised."""
+    r = residuals(x, pb)
+    S = _cached_sparsity(pb)
+    J = jacobian(x, r, pb, S, _column_groups(pb.n, pb.n_knots, _frame_period(pb)))
+    a = np.abs(r)
+    c = pb.sig.huber
+    w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
+    N = (J.T.multiply(w[None, :]).tocsc() @ J).toarray()
+    N[np.diag_indices_from(N)] += 1e-12 * max(1.0, float(np.max(np.diag(N))))
+    try:
+        cf = cho_factor(N, check_finite=False)
+    except LinAlgError:
+        return None
+    Jd = J.toarray()
+    h = w * np.einsum("ij,ij->i", Jd, cho_solve(cf, Jd.T, check_finite=False).T)
+    return r, w, 1.0 - h
 
-    A source noisier than its design sigmas (a centreline fitted on a short or sparse
-    cloud, a wandering INS, an ICP that slips) then weighs what its residuals say it is
-    worth, not what it was assumed to be worth; factors never go below 1 (a block is
-    never trusted more than designed). Residual rows of zero weight (odometry steps
-    switched off) are left out.
+
+def variance_factors(
+    pb: Problem, x: F64, red: tuple[F64, F64, F64] | None = None
+) -> dict[str, F64]:
+    """Per block and component, the factor (>= 1) by which its sigmas understate the scatter
+    of its own residuals at solution ``x`` (variance-component estimate).
+
+    With the redundancy numbers (:func:`redundancy`) the factor is Foerstner's
+    ``sqrt(sum(w r^2) / sum(1 - h))`` over the component's rows: a block that the solution
+    follows closely (ground pairs that alone fix the pitch) has small residuals because it
+    has little redundancy, not because it is good; counting its rows instead (the robust
+    ``median(r^2)`` estimate, used without redundancy numbers) trusted such blocks as
+    designed. A source noisier than its design sigmas (a centreline fitted on a short or
+    sparse cloud, a wandering INS, an ICP that slips) then weighs what its residuals say it
+    is worth; factors never go below 1 (a block is never trusted more than designed).
+    Residual rows of zero weight (odometry steps switched off) are left out.
     """
     out: dict[str, F64] = {}
+    offsets = _block_offsets(pb)
     for name, res in measurement_blocks(pb, x).items():
-        if name.startswith("odo") and len(pb.zupt):
-            res = res[~pb.zupt]  # zero-velocity steps are not the ICP's
+        i0 = offsets[name]
+        keep = np.ones(len(res), dtype=bool)
+        if name in ("odo_t", "odo_r") and len(pb.zupt):
+            keep = ~pb.zupt  # zero-velocity steps are not the ICP's
         cur = np.broadcast_to(pb.s(name), (res.shape[1],)).astype(np.float64)
         f = np.ones(res.shape[1])
         for c in range(res.shape[1]):
             rc = res[:, c]
-            rc = rc[rc != 0.0]
-            if len(rc) >= MIN_ROWS_FOR_SCALE:
-                f[c] = np.sqrt(np.median(rc**2) / CHI2_1_MEDIAN)
+            sel = keep & (rc != 0.0)
+            if int(np.sum(sel)) < MIN_ROWS_FOR_SCALE:
+                continue
+            if red is None:
+                f[c] = np.sqrt(np.median(rc[sel] ** 2) / CHI2_1_MEDIAN)
+                continue
+            rows = i0 + np.flatnonzero(sel) * res.shape[1] + c
+            r_all, w_all, red_all = red
+            den = float(np.sum(red_all[rows]))
+            if den > MIN_BLOCK_REDUNDANCY:
+                f[c] = np.sqrt(float(np.sum(w_all[rows] * r_all[rows] ** 2)) / den)
         out[name] = np.maximum(cur * np.maximum(f, 1.0), 1.0)
+    return out
+
+
+#: Least redundancy of a block component for a variance factor from redundancy numbers.
+MIN_BLOCK_REDUNDANCY = 1.0
+
+
+def _block_offsets(pb: Problem) -> dict[str, int]:
+    """First residual row of each measurement block (:func:`measurement_blocks`' order)."""
+    n, m = pb.n, len(pb.ins_k)
+    sizes: list[tuple[str, int]] = [("odo_t", 3 * (n - 1)), ("odo_r", 3 * (n - 1))]
+    if m:
+        sizes += [("ins_p", 3 * m), ("ins_r", 3 * m)]
+    if pb.rail is not None:
+        sizes += [("rail_lat", n), ("rail_vert", n), ("rail_r", 3 * n)]
+    if pb.ground is not None:
+        sizes.append(("ground", 3 * len(pb.ground["k"])))
+    if pb.vel is not None:
+        sizes.append(("ins_v", len(pb.vel["k"])))
+    if pb.odo_pairs is not None:
+        sizes.append(("odo_pair", 2 * len(pb.odo_pairs["k"])))
+    out, i = {}, 0
+    for name, size in sizes:
+        out[name] = i
+        i += size
     return out
 
 
@@ -1235,16 +1405,84 @@ VCE_ROUNDS = 1
 
 
 def _rescale_and_solve(pb: Problem, x: F64, health: Health) -> F64:
-    """Re-solve with each block's sigmas scaled to its residuals until the factors settle."""
+    """Re-solve with each block's sigmas scaled to its residuals until the factors settle,
+    then with the INS wander estimated from the solution (:func:`wander_factors`)."""
     for _ in range(VCE_ROUNDS):
-        factors = variance_factors(pb, x)
+        factors = variance_factors(pb, x, redundancy(pb, x) if pb.sig.redundancy_vce else None)
         if all(np.allclose(v, pb.s(k), rtol=0.1) for k, v in factors.items()):
             break
         pb.scale = factors
         x = solve(pb, x, max_iter=4)
     for name, f in pb.scale.items():
         health.metrics[f"fused_variance_factor_{name}"] = float(np.max(f))
+    if pb.sig.estimate_wander and pb.n_knots >= WANDER_MIN_KNOTS:
+        for _ in range(WANDER_ROUNDS):
+            f = wander_factors(pb, x)
+            if f is None or np.allclose(f, 1.0, rtol=0.1):
+                break
+            _set_bias_step(pb, pb.bias_step_sigma * f)
+            x = solve(pb, x, max_iter=4)
+        for name, q in zip(WANDER_NAMES, pb.bias_step_sigma, strict=True):
+            unit = np.degrees(q) if name in WANDER_NAMES[:3] else q
+            health.metrics[f"fused_ins_wander_estimated_{name}"] = float(unit)
     return x
+
+
+#: Rounds of the wander estimate (each: redundancy numbers, then a re-solve).
+WANDER_ROUNDS = 3
+#: Fewest INS bias knots for a wander estimate (its steps are its samples).
+WANDER_MIN_KNOTS = 4
+#: Bounds of one round's factor (a round moves a sigma by at most this much).
+WANDER_FACTOR_BOUNDS = (0.2, 5.0)
+#: Least redundancy (sum of 1 - h over a component's prior rows) to estimate its factor.
+WANDER_MIN_REDUNDANCY = 0.5
+#: The bias-step components, in :attr:`Problem.bias_step_sigma`'s order.
+WANDER_NAMES = ("roll_deg", "pitch_deg", "heading_deg", "east_m", "north_m", "up_m")
+
+
+def _set_bias_step(pb: Problem, q: F64) -> None:
+    """Take the INS wander sigmas ``q`` (6,), clipped to the floors, and rebuild what
+    depends on them (the attitude records' sigmas: the wander between knots)."""
+    a_cap = pb.sig.att_bias_step[2]
+    p_cap = pb.sig.pos_bias_step[2]
+    q = q.copy()
+    q[:3] = np.clip(q[:3], WANDER_FLOOR_R, a_cap)
+    q[3:] = np.clip(q[3:], WANDER_FLOOR_P, p_cap)
+    pb.bias_step_sigma = q
+    pb.ins_r_share = _ins_attitude_factors(pb.ins_k, pb.sig, q, pb.ins_white)
+
+
+#: Floors of an estimated INS wander per knot spacing (rad, m): below what a survey-grade
+#: INS's filter holds, sampling luck on a short sequence must not make it absolute.
+WANDER_FLOOR_R = 0.001 * DEG
+WANDER_FLOOR_P = 0.002
+
+
+def wander_factors(pb: Problem, x: F64) -> F64 | None:
+    """(6,) factors on the INS wander sigmas (the bias-step prior), by variance-component
+    estimation with redundancy numbers (Foerstner): for the prior's rows of component c,
+    ``f_c^2 = sum(w r^2) / sum(1 - h)`` with r the normalised residuals, w the Huber
+    weights and h the diagonal of the hat matrix ``W^1/2 J N^-1 J^T W^1/2``.
+
+    The INS's wander is what no single source measures: against the odometry alone the
+    odometry's own drift counts as the INS's (a good INS's heading wander measured 0.02 deg
+    a second where it had none). Here every source weighs in (odometry steps and pairs,
+    ground pairs, rails, INS positions and attitude): the bias steps the solution needs,
+    against the freedom the prior gave them, say how much the INS wandered. None when the
+    normal matrix cannot be inverted or the prior has no redundancy.
+    """
+    red = redundancy(pb, x)
+    if red is None:
+        return None
+    r, w, one_minus_h = red
+    n_steps = (pb.n_knots - 1) * 6
+    rows = np.arange(len(r) - n_steps, len(r))
+    rb = (w[rows] * r[rows] ** 2).reshape(-1, 6)
+    num, den = rb.sum(axis=0), one_minus_h[rows].reshape(-1, 6).sum(axis=0)
+    log.debug("wander VCE: sum w r^2 %s, redundancy %s", num, den)
+    # a component whose prior has (almost) no redundancy is left as it is
+    f = np.where(den > WANDER_MIN_REDUNDANCY, np.sqrt(num / np.maximum(den, 1e-12)), 1.0)
+    return np.clip(f, *WANDER_FACTOR_BOUNDS)
 
 
 def information(pb: Problem, x: F64) -> PoseInformation:
