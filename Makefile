@@ -29,7 +29,8 @@ test-full: setup
 	OSDAR_FULL=1 $(PY) -m pytest -q
 
 # Every scenario of ../shared/design/RELIABILITY.md in its full form, printing its figures
-# (needs Redis and PostgreSQL on loopback; redis_restart restarts the local Redis).
+# (needs Redis and PostgreSQL on loopback; redis_restart restarts the local Redis). Each
+# runs beside a CPU hog, one busy process per core (scripts/reliability/common.py: loaded).
 RELIABILITY := idempotency_burst authz_matrix limits hostile_uploads poison kill_workers \
 	store_outage redis_restart db_restart schemathesis_run dashboard_fuzz load_poll
 

@@ -188,10 +188,36 @@ class Job(Base):
     updated_at: Mapped[datetime] = mapped_column(Timestamp, default=utcnow, onupdate=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(Timestamp, default=None)
     finished_at: Mapped[datetime | None] = mapped_column(Timestamp, default=None)
+    #: When a message of the job was last known to be in the broker (handed to it at the
+    #: end of a stage, or taken from it when a stage started): the reaper compares it with
+    #: the Redis broker's start (worker/orchestration/reaper.py). None: not since QUEUED.
+    broker_seen_at: Mapped[datetime | None] = mapped_column(Timestamp, default=None)
+    #: The Redis ``run_id`` the reaper last re-sent the job to (its own sends only).
+    broker_run_id: Mapped[str | None] = mapped_column(String(64), default=None)
 
     events: Mapped[list[JobEvent]] = relationship(
         back_populates="job", cascade="all, delete-orphan", order_by="JobEvent.id"
     )
+
+
+class JobLease(Base):
+    """A worker process running one stage of one attempt, for as long as it renews this.
+
+    Taken when the stage starts, renewed by a heartbeat thread, deleted when the stage
+    ends (worker/orchestration/lease.py); the reaper re-queues a RUNNING job whose
+    attempt's leases have all expired (worker/orchestration/reaper.py).
+    """
+
+    __tablename__ = "job_leases"
+
+    id: Mapped[int] = mapped_column(BigIntPK, primary_key=True, autoincrement=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    attempt: Mapped[int] = mapped_column(Integer)
+    stage: Mapped[str] = mapped_column(String(64))
+    holder: Mapped[str] = mapped_column(String(255))  # "hostname:pid"
+    taken_at: Mapped[datetime] = mapped_column(Timestamp, default=utcnow)
+    renewed_at: Mapped[datetime] = mapped_column(Timestamp, default=utcnow)
+    expires_at: Mapped[datetime] = mapped_column(Timestamp)
 
 
 class JobEvent(Base):

@@ -114,13 +114,21 @@ class Settings(BaseSettings):
     store_retry_max_s: float = Field(30.0, gt=0)
     store_retry_budget_s: float = Field(120.0, gt=0)
     #: The reaper (worker/orchestration/reaper.py), run by every worker at start and then every
-    #: ``reaper_interval_s`` (0: never). A RUNNING job without a heartbeat (row update) for
-    #: ``reaper_stale_after_s`` (None: task_time_limit_s + visibility_margin_s) is re-queued
-    #: or FAILED; a QUEUED/RUNNING job older than ``reaper_orphan_grace_s`` that no broker
-    #: message names (Redis restarted without persistence) is re-queued.
+    #: ``reaper_interval_s`` (0: never). A RUNNING job whose every lease of its attempt
+    #: expired (worker/orchestration/lease.py: taken when a stage starts, renewed every
+    #: ``lease_renew_s`` for ``lease_ttl_s``) is re-queued or FAILED; so is one without a
+    #: heartbeat (row update) for ``reaper_stale_after_s`` (None: task_time_limit_s +
+    #: visibility_margin_s). A job whose message was handed to a Redis broker before that
+    #: Redis started (its ``run_id`` changed: restarted without persistence) is re-queued;
+    #: ``broker_restart_margin_s`` covers clock differences between the hosts and the
+    #: time between a send and its timestamp. PENDING jobs older than
+    #: ``reaper_orphan_grace_s`` are sent again.
     reaper_interval_s: float = Field(60.0, ge=0)
     reaper_stale_after_s: float | None = Field(None, gt=0)
     reaper_orphan_grace_s: float = Field(120.0, gt=0)
+    lease_ttl_s: float = Field(90.0, gt=0)
+    lease_renew_s: float = Field(15.0, gt=0)
+    broker_restart_margin_s: float = Field(2.0, ge=0)
 
     @model_validator(mode="after")
     def _derived(self) -> Settings:
@@ -145,6 +153,12 @@ class Settings(BaseSettings):
             raise ValueError(
                 f"visibility_timeout_s ({self.visibility_timeout_s}) must be at least "
                 f"task_time_limit_s + visibility_margin_s ({need})"
+            )
+        # a lease survives two missed renewals (a slow database, a busy core)
+        if self.lease_renew_s * 3 > self.lease_ttl_s:
+            raise ValueError(
+                f"lease_renew_s ({self.lease_renew_s}) must be at most a third of "
+                f"lease_ttl_s ({self.lease_ttl_s})"
             )
         if self.environment == "prod":
             self._check_prod()

@@ -49,7 +49,6 @@ def run(
         store = store_from_url(str(settings.store_url), settings)
         records: list[dict[str, Any]] = []
         with (
-            c.CpuHog(c.hog_processes(quick)),
             c.ApiServer(settings) as api,
             api.client(secret) as http,
             api.client(secret) as http2,
@@ -132,7 +131,6 @@ def run(
         "deliveries_max": max((r["deliveries"] for r in records), default=0),
         "recovery_s_max": max((r["recovery_s"] for r in records), default=0),
         "worker_process_deaths_logged": deaths,
-        "cpu_hog_processes": c.hog_processes(quick),
         **poller.figures(),
         "lost": [{k: r[k] for k in ("job", "kill", "stage_hit", "state", "error")} for r in lost],
         "records": records,

@@ -3,10 +3,12 @@
 Prefork worker, PostgreSQL, the API on uvicorn. Jobs are submitted; when the first is
 RUNNING, Redis is shut down (``redis-cli shutdown nosave``), a job is submitted while it
 is down (the API keeps it PENDING), and Redis is started again (the machine's own command)
-after ``outage`` seconds. The worker reconnects; the reaper (every worker runs it) finds
-the active jobs no broker message names and re-queues them, and sends the PENDING one.
-Figures: jobs lost (not SUCCEEDED in the end), re-queued by the reaper, API 5xx, time
-from Redis back to every job done, attempts.
+after ``outage`` seconds. The worker reconnects; the reaper (every worker runs it) sees
+Redis's ``run_id`` changed and re-queues the active jobs handed to the broker before the
+new Redis started that no live lease holds (worker/orchestration/reaper.py), and sends
+the PENDING one. Figures: jobs lost (not SUCCEEDED in the end), re-queued by the reaper
+and by which rule, archives per job in the store (exactly one: the published key), API
+5xx, time from Redis back to every job done, attempts.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from osdar_platform.store import store_from_url
 from scripts.reliability import common as c
 
 NAME = "redis_restart"
@@ -67,6 +70,8 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
                 for jid in ids:
                     five_xx += http.get(f"/v1/jobs/{jid}").status_code >= 500
                 events = {jid: c.job_events(settings, jid) for jid in ids}
+                store = store_from_url(str(settings.store_url), settings)
+                archives = {jid: c.archive_keys(store, jid) for jid in ids}
         finally:
             c.redis_start()  # whatever happened, leave the machine's Redis running
     lost = [jid for jid, row in rows.items() if row.state.value != "SUCCEEDED"]
@@ -78,6 +83,11 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
         "jobs_lost": len(lost),
         "lost": {jid[:8]: f"{rows[jid].state.value}: {rows[jid].error}" for jid in lost},
         "requeued_by_reaper": sum(1 for ev in events.values() for e in ev if e.kind == "requeued"),
+        "requeued_by_rule": _rules(events),
+        "jobs_with_exactly_one_archive": sum(
+            1 for jid in ids if archives[jid] == [rows[jid].result_key]
+        ),
+        "extra_archives": sum(max(0, len(a) - 1) for a in archives.values()),
         "pending_enqueue_failed": sum(
             1 for ev in events.values() for e in ev if e.kind == "enqueue_failed"
         ),
@@ -87,8 +97,23 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
     }
 
 
+def _rules(events: dict[str, list[Any]]) -> dict[str, int]:
+    """Re-queues per reaper rule (the first words of its reason)."""
+    out: dict[str, int] = {}
+    for ev in events.values():
+        for e in ev:
+            if e.kind == "requeued":
+                rule = (e.message or "").split(" (")[0].split(":")[0]
+                out[rule] = out.get(rule, 0) + 1
+    return out
+
+
 def ok(f: dict[str, Any]) -> bool:
-    return f["jobs_lost"] == 0 and f["api_5xx"] == 0
+    return (
+        f["jobs_lost"] == 0
+        and f["api_5xx"] == 0
+        and f["jobs_with_exactly_one_archive"] == f["jobs"]
+    )
 
 
 if __name__ == "__main__":

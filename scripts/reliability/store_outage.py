@@ -204,7 +204,6 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
             secret = c.new_api_key(settings)
             workers = c.Workers(settings, workdir / "worker.log", concurrency=1)
             with (
-                c.CpuHog(c.hog_processes(quick)),
                 c.ApiServer(settings) as api,
                 api.client(secret) as http,
                 api.client(secret) as http2,
@@ -240,7 +239,6 @@ def _figures(
         "archive_objects_checked": seen["checked"],
         "partial_archives_visible": seen["partial"],
         "api_archive_before_success": seen["api_archive_early"],
-        "cpu_hog_processes": c.hog_processes(quick),
         "api_5xx": seen["api_5xx"],
         "api_transport_errors_of_the_watcher": seen["api_transport_errors"],
         "records": records,

@@ -358,7 +358,7 @@ def test_celery_config_follows_the_reliability_rules(tmp_path: Path) -> None:
     from worker.orchestration.tasks import TASK_NAMES
 
     assert set(TASK_NAMES) <= set(default.tasks)
-    assert len(set(TASK_NAMES)) == 8 and all(n.startswith("osdar_ar.") for n in TASK_NAMES)
+    assert len(set(TASK_NAMES)) == 10 and all(n.startswith("osdar_ar.") for n in TASK_NAMES)
     # the SQLite broker's transport options are engine arguments (no visibility timeout)
     embedded = make_celery(Settings(data_dir=tmp_path)).conf
     assert "visibility_timeout" not in embedded.broker_transport_options

@@ -19,7 +19,10 @@ from osdar_platform.models import ApiKey, Job, JobEvent, JobState, Sequence, utc
 from tests.conftest_service import PgSchema, make_pg_schema, memory_celery, sent_tasks
 from worker.orchestration.queue import TASK_RUN_JOB, enqueue_job, request_cancel, requeue_pending
 
-TABLES = {"alembic_version", "api_keys", "sequences", "assets", "jobs", "job_events"}
+TABLES = {
+    *("alembic_version", "api_keys", "sequences", "assets", "jobs", "job_events"),
+    *("campaigns", "campaign_variants", "job_leases"),
+}
 
 
 @pytest.fixture(scope="module")

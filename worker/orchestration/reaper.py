@@ -1,63 +1,93 @@
 """The reaper: jobs that no worker will ever finish are re-queued (or FAILED), never lost.
 
-Celery's at-least-once delivery covers a worker process that dies mid-task (the message
-goes back: ``task_reject_on_worker_lost``, or the Redis visibility timeout). Three cases
-are left, and each leaves a job row active with nothing working on it:
+It decides from the database alone (a lease per running stage, ``lease.py``) and from
+the broker's public identity (Redis ``INFO server``: ``run_id`` and ``uptime_in_seconds``),
+never from the broker's internal layout. Celery's at-least-once delivery covers a pool
+process that dies mid-task while its worker lives (``task_reject_on_worker_lost`` puts the
+message back at once, the stage runs again and takes its lease over). Four cases are left,
+and each leaves a job active with nothing working on it. An active job is in one of two
+places: **held** (worker processes run its stages and renew their leases) or **in the
+broker** (QUEUED, or RUNNING between two stages: no lease of its attempt; when it was last
+handed to the broker is ``jobs.broker_seen_at``).
 
-- **stale RUNNING**: a task stopped at the hard time limit is acknowledged as failed
-  (no redelivery), and a worker whose parent was killed with its children may leave a
-  stage whose chain never continues. A RUNNING job whose row has not changed (the
-  heartbeat: every stage, sub-stage and frame updates ``updated_at``) for longer than the
-  hard limit plus a margin has no live task: no stage runs longer than the hard limit.
-- **orphaned QUEUED/RUNNING**: Redis restarted without persistence loses every queued and
-  unacknowledged message. With a Redis broker the reaper reads the queue and the unacked
-  hash; an active job older than ``reaper_orphan_grace_s`` that no message names (its id
-  is the run_job task id and the first argument of every stage) is re-queued. The check
-  is made twice, a second apart, so that a message moving from the queue to the unacked
-  hash is not missed. Other brokers are not inspected (the SQLite broker of the embedded
-  mode never loses a message, but has no redelivery after a crash either: a job whose
-  worker died stays RUNNING until the stale rule applies).
+- **lease expired**: a RUNNING job with an expired lease of its current attempt. Its
+  holder stopped renewing while it held the stage's message: the worker was killed with
+  its children (an OOM kill of a container), its host died, its database connection did
+  not come back within ``lease_ttl_s``, or the stage ended while the database was away
+  (its release failed). The message may come back after the broker's visibility timeout
+  (hours by default): the re-queue does not wait for it. A new attempt starts; sibling
+  chunks still running stop at their next check, and late deliveries of the old attempt
+  are refused by the attempt check.
+- **broker restarted**: Redis restarted without persistence loses every queued and
+  unacknowledged message. A job in the broker whose message was handed to it (QUEUED:
+  ``updated_at``; RUNNING: ``broker_seen_at``) before the current Redis started (now minus
+  its uptime), plus ``broker_restart_margin_s`` for the hosts' clocks and the time
+  between a send and its timestamp, is re-queued, unless the reaper itself sent it to
+  this Redis (``jobs.broker_run_id`` is its ``run_id``; that stamp stops a job re-sent
+  just after the restart from being re-sent again). Running stages are cancelled by
+  Celery when the connection drops (``worker_cancel_long_running_tasks_on_connection_loss``)
+  and release their leases without a hand-off, so their jobs fall under this rule at once.
+  Other brokers report no identity and are not checked (the SQLite broker of the
+  embedded mode never loses a message).
+- **stale RUNNING** (the backstop): no row update (``updated_at``: every stage, sub-stage
+  and frame writes it) for longer than the hard time limit plus a margin and no live
+  lease. A task stopped at the hard time limit is acknowledged as failed (no
+  redelivery); no stage runs longer than that limit.
 - **PENDING**: the API committed the row but could not send the message
   (``worker.orchestration.queue.requeue_pending``).
 
-Re-queueing is one conditional row update (``state`` and ``updated_at`` as read), then the
-send: of several reapers (one per worker) exactly one wins a given job. The new delivery
-starts a new attempt through ``state.mark_running``, which counts deliveries: a job that
-has already been delivered ``max_deliveries`` times is FAILED here with the reason instead.
+A stage that cannot reach the database does not fail the job: its message goes back to
+the broker (``tasks.py``), and its lease, if it had one, expires or is taken over by the
+stage's next delivery. A reaper whose own sweep failed (the database away) does not
+expire leases for ``lease_ttl_s`` after it is back: the holders need one renewal to show
+they lived through the outage.
+
+Re-queueing is one conditional row update (``state`` and ``updated_at`` as read, and for
+the lease rule an expired lease still there to delete, in one transaction), then the
+send: of several reapers (one per worker) exactly one wins a given job; a stage that
+started (it moves ``updated_at``) or a lease renewed in the meantime makes the claim roll
+back. A send that fails moves the job back to PENDING
+(``requeue_pending`` sends it later). The new delivery starts a new attempt through
+``state.mark_running``, which counts deliveries: a job already delivered
+``max_deliveries`` times is FAILED here with the reason instead. Duplicate messages (a
+persistent Redis restarted: its messages survive and are sent again) are harmless: the
+attempt check stops the older attempt, store keys are attempt-scoped, one conditional
+update publishes, and the winner removes every other attempt's objects.
 
 Every worker runs :func:`reap` when it is ready and then every ``reaper_interval_s``
-(a daemon thread of the worker's main process, ``worker/orchestration/celery_app.py``). The thread
-opens its own engine per sweep and disposes it, so no pooled connection is ever inherited
-by a prefork child forked later.
+(a daemon thread of the worker's main process, ``lifecycle.py``). The thread opens its own
+engine per sweep and disposes it, so no pooled connection is ever inherited by a prefork
+child forked later.
 """
 
 from __future__ import annotations
 
-import base64
 import contextlib
-import json
 import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from datetime import timedelta
+from datetime import datetime, timedelta
 from typing import Any
 
 import redis
-from sqlalchemy import select, update
+from sqlalchemy import and_, delete, or_, select, update
 
 from osdar_platform.db import make_engine, make_sessionmaker, updated_rows
-from osdar_platform.models import Job, JobEvent, JobState, utcnow
+from osdar_platform.models import TERMINAL_STATES, Job, JobEvent, JobLease, JobState, utcnow
 from osdar_platform.settings import Settings
-from worker.orchestration.celery_app import QUEUE, make_celery
+from worker.orchestration.celery_app import make_celery
 from worker.orchestration.queue import TASK_RUN_JOB, requeue_pending
 from worker.orchestration.state import POISON_REASON
 
 log = logging.getLogger(__name__)
 
 STALE_REASON = "worker lost: no progress for {s:.0f}s (time limit or killed worker)"
-#: Most messages read from one Redis key per sweep (bounded work on a huge backlog).
-MAX_SCAN = 100_000
+LEASE_REASON = "lease expired: {stage} held by {holder}, {ago:.0f}s ago (worker lost)"
+BROKER_REASON = (
+    "broker restarted: Redis run_id {run_id} up since {since}, the job's message handed "
+    "to it at {sent}"
+)
 
 
 @dataclass
@@ -65,7 +95,8 @@ class ReapReport:
     requeued: list[str] = field(default_factory=list)
     failed: list[str] = field(default_factory=list)
     pending_sent: list[str] = field(default_factory=list)
-    broker_checked: bool = False
+    reasons: dict[str, str] = field(default_factory=dict)
+    broker: BrokerEpoch | None = None
 
 
 def stale_after_s(settings: Settings) -> float:
@@ -75,111 +106,223 @@ def stale_after_s(settings: Settings) -> float:
 
 
 # ---------------------------------------------------------------------------- broker
-def _message_text(raw: bytes | str) -> str:
-    """A kombu Redis message (or unacked [message, exchange, key]) as searchable text."""
-    text = raw.decode("utf-8", "replace") if isinstance(raw, bytes) else raw
-    parts = [text]
-    try:
-        obj = json.loads(text)
-        msg = obj[0] if isinstance(obj, list) and obj else obj
-        body = msg.get("body") if isinstance(msg, dict) else None
-        if isinstance(body, str) and msg.get("properties", {}).get("body_encoding") == "base64":
-            parts.append(base64.b64decode(body).decode("utf-8", "replace"))
-    except (ValueError, TypeError, AttributeError):
-        pass
-    return "\n".join(parts)
+@dataclass(frozen=True)
+class BrokerEpoch:
+    """One life of the Redis broker: its ``run_id`` and when it started (this clock)."""
+
+    run_id: str
+    started_at: datetime
 
 
-def broker_messages_text(settings: Settings) -> str | None:
-    """Every message of our queue and of the unacked hash as one text; None if unknown.
-
-    Only the Redis transport is read (kombu's layout: the queue is a list named after
-    it, priority sub-queues ``<queue>\\x06\\x16<n>``, unacked messages in hash ``unacked``).
-    """
+def broker_epoch(settings: Settings) -> BrokerEpoch | None:
+    """The Redis broker's ``run_id`` and start from its public ``INFO server``; None for
+    other brokers. Raises if Redis is not reachable."""
     url = str(settings.broker_url)
     if not url.startswith(("redis://", "rediss://")):
         return None
-
     client = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5)
     try:
-        chunks: list[str] = []
-        keys = [QUEUE, *(k.decode() for k in client.scan_iter(match=f"{QUEUE}\x06\x16*"))]
-        for key in keys:
-            if client.type(key) == b"list":
-                chunks.extend(_message_text(m) for m in client.lrange(key, 0, MAX_SCAN - 1))
-        for _, raw in client.hscan_iter("unacked", count=1000):
-            chunks.append(_message_text(raw))
-        return "\n".join(chunks)
+        info = client.info("server")
     finally:
         client.close()
+    uptime = timedelta(seconds=int(info["uptime_in_seconds"]))
+    return BrokerEpoch(str(info["run_id"]), utcnow() - uptime)
+
+
+# ---------------------------------------------------------------------------- decide
+@dataclass(frozen=True)
+class LeaseView:
+    stage: str
+    holder: str
+    renewed_at: datetime
+    expires_at: datetime
+
+
+@dataclass(frozen=True)
+class JobView:
+    """What the reaper reads of one active job (its current attempt's leases)."""
+
+    id: str
+    state: JobState
+    updated_at: datetime
+    broker_seen_at: datetime | None = None
+    broker_run_id: str | None = None
+    leases: tuple[LeaseView, ...] = ()
+
+
+def decide(
+    job: JobView,
+    now: datetime,
+    epoch: BrokerEpoch | None,
+    settings: Settings,
+    *,
+    expire_leases: bool = True,
+) -> str | None:
+    """Why ``job`` must be re-queued (module docstring), or None to leave it alone."""
+    running = job.state == JobState.RUNNING
+    expired = [lease for lease in job.leases if lease.expires_at <= now]
+    if running and expired:  # a holder died with the stage's message in its hands
+        if not expire_leases:
+            return None
+        last = max(expired, key=lambda lease: lease.expires_at)
+        ago = (now - last.expires_at).total_seconds()
+        return LEASE_REASON.format(stage=last.stage, holder=last.holder, ago=ago)
+    if running and job.leases:
+        return None  # held: its holders renew their leases
+    # in the broker (a QUEUED job's message is there, whatever a stale delivery holds)
+    seen = job.broker_seen_at
+    if epoch is not None and job.broker_run_id != epoch.run_id:
+        sent = job.updated_at if not running else (seen or job.updated_at)
+        margin = timedelta(seconds=settings.broker_restart_margin_s)
+        if sent < epoch.started_at + margin:
+            return BROKER_REASON.format(
+                run_id=epoch.run_id[:12],
+                since=epoch.started_at.isoformat(timespec="seconds"),
+                sent=sent.isoformat(timespec="seconds"),
+            )
+    if running and job.updated_at < now - timedelta(seconds=stale_after_s(settings)):
+        return STALE_REASON.format(s=stale_after_s(settings))
+    return None
 
 
 # ---------------------------------------------------------------------------- reap
+def _claim(
+    s: Any,
+    job_id: str,
+    seen_state: JobState,
+    seen_updated: Any,
+    now: datetime,
+    expected_expired: bool,
+) -> Any:
+    """Lock the job for a re-queue: its row as read, its expired leases deleted (at least
+    one if ``expected_expired``: the lease rule).
+
+    Returns ``(deliveries, attempt)`` or None if the job moved (progress, a stage started,
+    a renewal, or another reaper), in which case the caller's transaction must be rolled
+    back.
+    """
+    claim = [Job.id == job_id, Job.state == seen_state, Job.updated_at == seen_updated]
+    # touch the row first: on PostgreSQL this locks it, so that two reapers serialize here
+    locked = updated_rows(s, update(Job).where(*claim).values(updated_at=seen_updated))
+    if not locked:
+        return None
+    gone = s.execute(delete(JobLease).where(JobLease.job_id == job_id, JobLease.expires_at <= now))
+    if expected_expired and not gone.rowcount:
+        return None  # renewed meanwhile: its holder lives (a stage start moves updated_at)
+    return s.execute(select(Job.deliveries, Job.attempt).where(Job.id == job_id)).one()
+
+
 def _requeue(
     sessions: Any,
     app: Any,
     settings: Settings,
-    job_id: str,
-    seen_state: JobState,
-    seen_updated: Any,
+    job: JobView,
     why: str,
+    epoch: BrokerEpoch | None,
 ) -> str | None:
     """Claim the job (conditional update) and send it again; 'requeued'/'failed'/None."""
 
     now = utcnow()
-    claim = [Job.id == job_id, Job.state == seen_state, Job.updated_at == seen_updated]
-    with sessions.begin() as s:
-        job = s.execute(select(Job.deliveries, Job.attempt).where(*claim)).one_or_none()
-        if job is None:
-            return None  # moved meanwhile (progress, or another reaper)
-        if job.deliveries >= settings.max_deliveries:
+    job_id = job.id
+    with sessions() as s, s.begin():
+        lease_rule = job.state == JobState.RUNNING and bool(job.leases)
+        row = _claim(s, job_id, job.state, job.updated_at, now, lease_rule)
+        if row is None:
+            s.rollback()
+            return None
+        if row.deliveries >= settings.max_deliveries:
             reason = f"{POISON_REASON}: {why}"
-            moved = updated_rows(
-                s,
+            s.execute(
                 update(Job)
-                .where(*claim)
-                .values(state=JobState.FAILED, error=reason, finished_at=now, updated_at=now),
+                .where(Job.id == job_id)
+                .values(state=JobState.FAILED, error=reason, finished_at=now, updated_at=now)
             )
-            if moved:
-                s.add(
-                    JobEvent(
-                        job_id=job_id,
-                        kind="failed",
-                        attempt=job.attempt,
-                        message=reason,
-                        data={"by": "reaper", "deliveries": job.deliveries},
-                    )
-                )
-                return "failed"
-            return None
-        requeue = {"state": JobState.QUEUED, "stage": "requeued", "updated_at": now}
-        moved = updated_rows(s, update(Job).where(*claim).values(**requeue))
-        if not moved:
-            return None
-        s.add(
-            JobEvent(
-                job_id=job_id,
-                kind="requeued",
-                attempt=job.attempt,
-                message=why,
-                data={"by": "reaper", "deliveries": job.deliveries},
-            )
+            data = {"by": "reaper", "deliveries": row.deliveries}
+            s.add(JobEvent(job_id=job_id, kind="failed", attempt=row.attempt, message=reason,
+                           data=data))  # fmt: skip
+            return "failed"
+        s.execute(
+            update(Job)
+            .where(Job.id == job_id)
+            .values(state=JobState.QUEUED, stage="requeued", updated_at=now, broker_run_id=None)
         )
+        data = {"by": "reaper", "deliveries": row.deliveries}
+        s.add(JobEvent(job_id=job_id, kind="requeued", attempt=row.attempt, message=why,
+                       data=data))  # fmt: skip
     try:
         app.send_task(TASK_RUN_JOB, args=[job_id], task_id=job_id)
-    except Exception as exc:  # the row is QUEUED without a message: the next sweep sees it
+    except Exception as exc:  # PENDING again: requeue_pending sends it once the broker is back
         log.warning("reaper: re-queue of job %s could not be sent: %s", job_id, exc)
+        with sessions.begin() as s:
+            back = updated_rows(
+                s,
+                update(Job)
+                .where(Job.id == job_id, Job.state == JobState.QUEUED, Job.updated_at == now)
+                .values(state=JobState.PENDING),
+            )
+            if back:
+                s.add(JobEvent(job_id=job_id, kind="enqueue_failed", message=str(exc)[:2000]))
         return None
+    if epoch is not None:  # sent to this Redis: not "sent before its restart" next sweep
+        with sessions.begin() as s:
+            s.execute(
+                update(Job)
+                .where(Job.id == job_id, Job.state == JobState.QUEUED, Job.updated_at == now)
+                .values(broker_run_id=epoch.run_id, updated_at=now)
+            )
     log.warning("reaper: job %s re-queued (%s)", job_id, why)
     return "requeued"
 
 
-def reap(settings: Settings, app: Any = None, *, sessions: Any = None) -> ReapReport:
+def _active_jobs(s: Any, now: datetime, epoch: BrokerEpoch | None, settings: Settings) -> Any:
+    """The jobs a rule could apply to: every RUNNING one; QUEUED ones only when the
+    broker restarted after they were sent (and the reaper did not send them to it)."""
+    where = [Job.state == JobState.RUNNING]
+    if epoch is not None:
+        cut = epoch.started_at + timedelta(seconds=settings.broker_restart_margin_s)
+        not_ours = or_(Job.broker_run_id.is_(None), Job.broker_run_id != epoch.run_id)
+        where.append(and_(Job.state == JobState.QUEUED, Job.updated_at < cut, not_ours))
+    rows = s.execute(
+        select(
+            Job.id, Job.state, Job.attempt, Job.updated_at, Job.broker_seen_at, Job.broker_run_id
+        ).where(or_(*where))
+    ).all()
+    leases: dict[str, list[LeaseView]] = {}
+    attempts = {r.id: r.attempt for r in rows}
+    if attempts:
+        for lease in s.scalars(select(JobLease).where(JobLease.job_id.in_(list(attempts)))):
+            if lease.attempt == attempts[lease.job_id]:
+                view = LeaseView(lease.stage, lease.holder, lease.renewed_at, lease.expires_at)
+                leases.setdefault(lease.job_id, []).append(view)
+    return [
+        JobView(
+            r.id,
+            JobState(r.state),
+            r.updated_at,
+            r.broker_seen_at,
+            r.broker_run_id,
+            tuple(leases.get(r.id, ())),
+        )
+        for r in rows
+    ]
+
+
+def reap(
+    settings: Settings,
+    app: Any = None,
+    *,
+    sessions: Any = None,
+    expire_leases: bool = True,
+) -> ReapReport:
     """One sweep (module docstring); safe to run in many processes at once."""
 
     if app is None:
         app = make_celery(settings)
     report = ReapReport()
+    try:
+        report.broker = broker_epoch(settings)
+    except Exception as exc:  # broker down: the lease and stale rules still apply
+        log.warning("reaper: broker identity not readable: %s", exc)
     engine = None
     if sessions is None:
         kw = {} if settings.is_sqlite else {"pool_size": 1, "max_overflow": 2}
@@ -187,38 +330,18 @@ def reap(settings: Settings, app: Any = None, *, sessions: Any = None) -> ReapRe
         sessions = make_sessionmaker(engine)
     try:
         now = utcnow()
-        stale_cut = now - timedelta(seconds=stale_after_s(settings))
-        grace_cut = now - timedelta(seconds=settings.reaper_orphan_grace_s)
-        with sessions() as s:
-            rows = s.execute(
-                select(Job.id, Job.state, Job.updated_at).where(
-                    Job.state.in_([JobState.QUEUED, JobState.RUNNING]),
-                    Job.updated_at < max(stale_cut, grace_cut),
-                )
-            ).all()
-        texts: list[str] = []
-        if rows:
-            try:
-                first = broker_messages_text(settings)
-                if first is not None:
-                    time.sleep(1.0)  # a message between the queue and the unacked hash
-                    texts = [first, broker_messages_text(settings) or ""]
-                    report.broker_checked = True
-            except Exception as exc:  # broker down: only the stale rule decides now
-                log.warning("reaper: broker not readable: %s", exc)
-        for row in rows:
-            stale = row.state == JobState.RUNNING and row.updated_at < stale_cut
-            if report.broker_checked:
-                if any(row.id in t for t in texts):
-                    continue  # queued, or held by a worker (redelivered if that one died)
-                why = "no broker message names the job (broker restarted, or task killed)"
-            elif stale:
-                why = STALE_REASON.format(s=stale_after_s(settings))
-            else:
+        with sessions.begin() as s:
+            terminal = select(Job.id).where(Job.state.in_(list(TERMINAL_STATES)))
+            s.execute(delete(JobLease).where(JobLease.job_id.in_(terminal)))
+            jobs = _active_jobs(s, now, report.broker, settings)
+        for job in jobs:
+            why = decide(job, now, report.broker, settings, expire_leases=expire_leases)
+            if why is None:
                 continue
-            out = _requeue(sessions, app, settings, row.id, row.state, row.updated_at, why)
+            out = _requeue(sessions, app, settings, job, why, report.broker)
             if out:
-                getattr(report, out).append(row.id)
+                getattr(report, out).append(job.id)
+                report.reasons[job.id] = why
         report.pending_sent = requeue_pending(
             older_than_s=settings.reaper_orphan_grace_s, sessions=sessions, app=app
         )
@@ -232,7 +355,11 @@ def reap(settings: Settings, app: Any = None, *, sessions: Any = None) -> ReapRe
 
 # ---------------------------------------------------------------------------- thread
 class ReaperThread(threading.Thread):
-    """Runs :func:`reap` now and every ``interval_s`` until :meth:`stop`."""
+    """Runs :func:`reap` now and every ``interval_s`` until :meth:`stop`.
+
+    After a sweep that failed (the database away), leases are not expired for
+    ``lease_ttl_s``: their holders renew them once the database is back.
+    """
 
     def __init__(self, settings: Settings, app: Any, interval_s: float) -> None:
         super().__init__(name="osdar-ar-reaper", daemon=True)
@@ -240,12 +367,22 @@ class ReaperThread(threading.Thread):
         self.app = app
         self.interval_s = interval_s
         self._halt = threading.Event()
+        self._expire_from = 0.0  # time.monotonic() from which leases may be expired
+        self._run_id: str | None = None
 
     def run(self) -> None:
         while not self._halt.is_set():
             try:
-                reap(self.settings, self.app)
+                expire = time.monotonic() >= self._expire_from
+                report = reap(self.settings, self.app, expire_leases=expire)
+                epoch = report.broker
+                if epoch is not None and epoch.run_id != self._run_id:
+                    if self._run_id is not None:
+                        log.warning("reaper: the Redis broker restarted at %s (run_id %s)",
+                                    epoch.started_at.isoformat(), epoch.run_id)  # fmt: skip
+                    self._run_id = epoch.run_id
             except Exception:
+                self._expire_from = time.monotonic() + self.settings.lease_ttl_s
                 log.exception("reaper sweep failed (next in %.0fs)", self.interval_s)
             self._halt.wait(self.interval_s)
 
@@ -277,9 +414,13 @@ def stop_reaper() -> None:
 
 
 __all__ = [
+    "BrokerEpoch",
+    "JobView",
+    "LeaseView",
     "ReapReport",
     "ReaperThread",
-    "broker_messages_text",
+    "broker_epoch",
+    "decide",
     "reap",
     "stale_after_s",
     "start_reaper",

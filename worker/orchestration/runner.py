@@ -13,11 +13,15 @@ One job = one recipe (:func:`run_job_inline` reads it top to bottom)::
 
 [*] the chunks of one job can run on several workers at once (a Celery chord).
 
-Every stage runs inside :func:`_stage`: it checks that the attempt is still current and
-not cancelled, counts the stage's deliveries (a stage that keeps killing its worker fails
-the job), shows the stage on the job, times it, and turns errors into a FAILED job with a
-readable reason (:class:`~worker.orchestration.state.JobFailed`) and cancellations into CANCELLED
-(partial outputs removed). Stages hold no DB session while they compute.
+Every stage runs inside :func:`_stage`: it holds the stage's lease while it runs (taken,
+renewed by a heartbeat thread, released: ``lease.py``; the reaper re-queues a job whose
+leases expired), checks that the attempt is still current and not cancelled, counts the
+stage's deliveries (a stage that keeps killing its worker fails the job), shows the stage
+on the job, times it, and turns errors into a FAILED job with a readable reason
+(:class:`~worker.orchestration.state.JobFailed`) and cancellations into CANCELLED (partial
+outputs removed). A lost database connection is not the job's error: it is raised as it
+is and the task gives the stage back to the broker (``tasks.py``). Stages hold no DB
+session while they compute.
 
 Each stage can run on another machine than the previous one: it only needs the job id
 and the attempt; local inputs (the fetched sequence, the prepared artifact, the archive)
@@ -60,7 +64,8 @@ from worker.augmentation.records import (
 )
 from worker.augmentation.spec import AugmentSpec
 from worker.evaluation.evaluate import evaluate_sequence, plot_rpe_jitter
-from worker.orchestration import state
+from worker.orchestration import lease, state
+from worker.orchestration.lease import database_unreachable
 from worker.orchestration.state import (
     POISON_REASON,
     JobCancelled,
@@ -233,6 +238,15 @@ def cleanup_attempt(run: JobRun, *, keep: frozenset[str] = frozenset()) -> None:
 def _stage(run: JobRun, name: str, *, count_delivery: bool = True) -> Iterator[None]:
     """Guard, show, time one stage; map its outcome onto the job (module docstring)."""
     s = run.settings
+    with lease.held(run.job_id, run.attempt, name, settings=s):
+        with _outcome(run, name, count_delivery=count_delivery):
+            yield
+
+
+@contextmanager
+def _outcome(run: JobRun, name: str, *, count_delivery: bool) -> Iterator[None]:
+    """The body of :func:`_stage` inside the stage's lease."""
+    s = run.settings
     try:
         state.check_attempt(run.job_id, run.attempt, settings=s)
         if count_delivery:
@@ -264,6 +278,11 @@ def _stage(run: JobRun, name: str, *, count_delivery: bool = True) -> Iterator[N
             # exit; the message is redelivered or the reaper re-queues the job.
             log.warning("job %s: process terminated in stage %s", run.job_id, name)
             raise stop from exc
+        if database_unreachable(exc):
+            # Not the job's fault either: the stage goes back to the broker (tasks.py) and
+            # runs again when the database is back; failing the job needs it anyway.
+            log.warning("job %s: database unreachable in stage %s: %s", run.job_id, name, exc)
+            raise
         reason = describe_error(name, exc)
         log.exception("job %s attempt %d failed in %s", run.job_id, run.attempt, name)
         state.mark_failed(run.job_id, reason, settings=s, attempt=run.attempt)

@@ -5,7 +5,8 @@ the same job (Celery delivers at least once) can never undo each other's work:
 
 - :func:`mark_running` starts an *attempt*: it counts the delivery, refuses a job that
   has crashed its workers too often (poison input), and moves QUEUED -> RUNNING with
-  ``attempt + 1``. The attempt number scopes everything an attempt writes.
+  ``attempt + 1``. The attempt number scopes everything an attempt writes. The leases of
+  earlier attempts are dropped (``lease.py``: liveness per running stage).
 - :func:`check_attempt` is the checkpoint between stages and chunks: a job that was
   cancelled raises :class:`JobCancelled`; one that finished, failed or was taken over by a
   newer attempt raises :class:`JobSuperseded` (the stale attempt just stops).
@@ -20,10 +21,10 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from sqlalchemy import case, func, select, update
+from sqlalchemy import case, delete, func, select, update
 
 from osdar_platform.db import session_scope, updated_rows
-from osdar_platform.models import TERMINAL_STATES, Job, JobEvent, JobState, utcnow
+from osdar_platform.models import TERMINAL_STATES, Job, JobEvent, JobLease, JobState, utcnow
 from osdar_platform.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -113,11 +114,14 @@ def mark_running(job_id: str, *, settings: Settings, max_deliveries: int | None 
                 error=None,
                 started_at=func.coalesce(Job.started_at, now),
                 updated_at=now,
+                broker_seen_at=now,  # its message was delivered just now
             ),
         )
         if not moved:
             raise JobSuperseded(f"job {job_id} was taken by another delivery")
         attempt: int = job.attempt + 1
+        # the leases of earlier attempts mean nothing now (lease.py)
+        s.execute(delete(JobLease).where(JobLease.job_id == job_id, JobLease.attempt < attempt))
         _event(s, job_id, "attempt_started", attempt, data={"deliveries": job.deliveries})
     return attempt
 

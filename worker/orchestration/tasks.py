@@ -9,7 +9,9 @@ workflow::
 A stage that stops the job (cancelled, failed, superseded by a newer attempt) raises
 ``Ignore``: the message is acknowledged and the rest of the workflow is not sent. The job
 row already says why. Chunk tasks return a "stopped" marker instead, so that the chord
-always completes and its ``finish`` sees the stop at its own checkpoint.
+always completes and its ``finish`` sees the stop at its own checkpoint. A stage that
+could not reach the database is rejected with ``requeue``: its message goes back to the
+broker and the stage runs again (``run_job`` holds a lease while it sends the workflow).
 
 Campaigns (worker/campaign/service_expand.py, service_finalize.py): ``osdar_ar.
 campaign_expand`` prepares a campaign's sequences, expands it and makes its variant jobs;
@@ -20,16 +22,18 @@ variant is finished (``osdar_ar.campaign_finalize`` does the same when the API a
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
-from typing import Any, ParamSpec, TypeVar
+from typing import Any, NoReturn, ParamSpec, TypeVar
 
 from celery import Task, chain, chord, shared_task
-from celery.exceptions import Ignore
+from celery.exceptions import Ignore, Reject
 
 from osdar_platform.settings import get_settings
 from worker.campaign.service_expand import expand_campaign_stage
 from worker.campaign.service_finalize import finalize_after_job, finalize_campaign
-from worker.orchestration import runner, state
+from worker.orchestration import lease, runner, state
+from worker.orchestration.lease import database_unreachable
 from worker.orchestration.queue import TASK_EXPAND_CAMPAIGN, TASK_FINALIZE_CAMPAIGN, TASK_RUN_JOB
 from worker.orchestration.state import JobCancelled, JobFailed, JobStop
 
@@ -68,6 +72,15 @@ class JobTask(Task[Any, Any]):
     ignore_result = True
 
 
+def _give_back(exc: BaseException) -> NoReturn:
+    """The database is unreachable: put the message back (it runs again, on this or
+    another worker) after ``lease_renew_s``, so a long outage is no busy loop."""
+    delay = get_settings().lease_renew_s
+    log.warning("database unreachable, message back to the broker in %.0fs: %s", delay, exc)
+    time.sleep(delay)
+    raise Reject(str(exc)[:500], requeue=True) from exc
+
+
 def _stage(fn: Callable[_P, _R], *args: _P.args, **kwargs: _P.kwargs) -> _R:
     try:
         return fn(*args, **kwargs)
@@ -76,6 +89,10 @@ def _stage(fn: Callable[_P, _R], *args: _P.args, **kwargs: _P.kwargs) -> _R:
         if isinstance(stop, (JobFailed, JobCancelled)) and args:
             _after_job(str(args[0]))
         raise Ignore() from stop
+    except Exception as exc:
+        if database_unreachable(exc):
+            _give_back(exc)
+        raise
 
 
 def _after_job(job_id: str) -> None:
@@ -109,10 +126,14 @@ def workflow(app: Any, job_id: str, attempt: int, chunks: list[list[int]]) -> An
 def run_job(self: Task[Any, Any], job_id: str) -> None:
     """Start an attempt (poison jobs are FAILED here) and launch its stages."""
     attempt = _stage(runner.start_job, job_id)
+    settings = get_settings()
     try:
-        chunks = runner.plan_chunks(job_id, attempt=attempt)
-        workflow(self.app, job_id, attempt, chunks).apply_async()
+        with lease.held(job_id, attempt, "run_job", settings=settings):
+            chunks = runner.plan_chunks(job_id, attempt=attempt)
+            workflow(self.app, job_id, attempt, chunks).apply_async()
     except Exception as exc:
+        if database_unreachable(exc):
+            _give_back(exc)  # delivered again: a new attempt starts
         state.mark_failed(
             job_id, f"start: could not schedule the stages ({exc})", attempt=attempt,
             settings=get_settings(),
@@ -136,6 +157,10 @@ def augment_chunk(job_id: str, attempt: int, index: int, frames: list[int]) -> d
         return runner.augment_chunk(job_id, index, frames, attempt=attempt)
     except JobStop as stop:  # never raise in a chord header: the chord must complete
         return {"index": index, "stopped": True, "reason": str(stop)}
+    except Exception as exc:
+        if database_unreachable(exc):
+            _give_back(exc)
+        raise
 
 
 @shared_task(name=TASK_FINISH, base=JobTask)
