@@ -20,6 +20,7 @@ from service.ratelimit import TokenBuckets
 from worker.orchestration.queue import (
     TASK_EXPAND_CAMPAIGN,
     TASK_FINALIZE_CAMPAIGN,
+    broker_overview,
     enqueue_job,
     request_cancel,
     send_task,
@@ -42,6 +43,10 @@ class Dispatcher:
     def send_expand(self, campaign_id: str) -> None:
         """A campaign's expansion (worker/campaign/service_expand.py)."""
         send_task(TASK_EXPAND_CAMPAIGN, [campaign_id], app=self.celery_app)
+
+    def broker(self) -> dict[str, Any]:
+        """Workers answering a ping and the job queue's depth (an operator's dashboard)."""
+        return broker_overview(app=self.celery_app, timeout_s=1.0)
 
     def send_finalize(self, campaign_id: str) -> None:
         """A campaign's manifest and end state (worker/campaign/service_finalize.py)."""

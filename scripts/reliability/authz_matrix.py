@@ -1,9 +1,9 @@
 """A second API key against the first key's objects: every id route answers 404.
 
-Alice owns a registered sequence, an uploaded sequence, an asset, a QUEUED job and a
-SUCCEEDED job with an archive and previews. Bob (his own valid key) calls every route of
-the OpenAPI that takes an id, with every method, on each of Alice's objects; then with
-random ids; no key and a wrong key must be 401 everywhere. Figures: requests, the share
+Alice owns a registered sequence, an uploaded sequence, an asset, a QUEUED job, a
+SUCCEEDED job with an archive and previews, and a campaign. Bob (his own valid key) calls
+every route of the OpenAPI that takes an id, with every method, on each of Alice's objects;
+then with random ids; no key and a wrong key must be 401 everywhere. Figures: requests, the share
 that was 404 (must be 100 %), anything else listed, and that Alice still reads it all.
 """
 
@@ -53,6 +53,11 @@ def _fake_publish(settings: Any, store: Any, job_id: str) -> None:
         )
 
 
+def _campaign(sequence_id: str) -> dict[str, Any]:
+    return {"name": "alice", "sequences": [{"id": sequence_id}],
+            "obstacles": [{"builtin": "rock"}], "job": {"cameras": ["rgb_center"]}}  # fmt: skip
+
+
 def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
     seq = c.synth_sequence(workdir / "seq" / "fire_site_rel")
     random_ids = 3 if quick else 20
@@ -75,10 +80,12 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
             queued = alice.post("/v1/jobs", json=c.job_spec(reg)).json()["id"]
             done = alice.post("/v1/jobs", json=c.job_spec(up)).json()["id"]
             _fake_publish(settings, api.app.state.store, done)
+            campaign = alice.post("/v1/campaigns", json=_campaign(reg)).json()["id"]
             bob.post("/v1/sequences", json={"path": str(seq)})  # bob has objects of his own
             spec = api.client().get("/v1/openapi.json").json()
             routes = [(m.upper(), p) for p, ops in spec["paths"].items() for m in ops if "{" in p]
-            objects = {"sequence_id": [reg, up], "asset_id": [asset], "job_id": [queued, done]}
+            objects = {"sequence_id": [reg, up], "asset_id": [asset], "job_id": [queued, done],
+                       "campaign_id": [campaign]}  # fmt: skip
             rnd = [str(uuid.UUID(int=seed * 1000 + i)) for i in range(random_ids)]
             calls: list[tuple[str, str, str]] = []
             for method, path in routes:
@@ -97,6 +104,7 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
                     p.replace("{sequence_id}", reg)
                     .replace("{job_id}", done)
                     .replace("{asset_id}", asset)
+                    .replace("{campaign_id}", campaign)
                     .replace("{index}", "0"),
                 )
                 for p, ops in spec["paths"].items()
@@ -119,6 +127,8 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
                 and alice.get(f"/v1/assets/{asset}").status_code == 200
                 and alice.get(f"/v1/jobs/{queued}").json()["state"] == "QUEUED"
                 and bob.get("/v1/jobs").json()["total"] == 0
+                and alice.get(f"/v1/campaigns/{campaign}").json()["state"] == "PENDING"
+                and bob.get("/v1/campaigns").json()["total"] == 0
             )
     n = len(calls)
     return {

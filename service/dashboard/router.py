@@ -10,6 +10,9 @@ Pages (HTML, Jinja2)::
     GET  /dashboard/jobs/{id}             spec, live progress, timings, metrics, previews
     GET  /dashboard/jobs/{id}/previews/N  one preview image (streamed from the store)
     GET  /dashboard/jobs/{id}/archive     the published archive (streamed, Range)
+    GET  /dashboard/campaigns             campaigns, with their progress
+    GET  /dashboard/campaigns/{id}        a campaign: progress, quality histogram (inline
+                                          SVG), its variants with a preview each
     GET  /dashboard/sequences             sequences
     GET  /dashboard/sequences/{id}        one sequence and its jobs
     GET  /dashboard/assets                uploaded meshes
@@ -20,7 +23,9 @@ JSON for the pages' poller (``static/dashboard.js``)::
     GET  /dashboard/api/jobs/{id}         live status of one job
 
 Every route but login shows only the logged-in key's objects; another key's object is a
-404 page. Routes stay thin: the data comes from ``service/services/*.py``.
+404 page. An operator key (``osdar-ar keys create NAME --operator``) sees every key's jobs
+and campaigns, and the jobs page shows it the workers alive, the queue depth and the
+failure rate. Routes stay thin: the data comes from ``service/services/*.py``.
 """
 
 from __future__ import annotations
@@ -36,16 +41,19 @@ from fastapi import Path as PathParam
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
 
-from osdar_platform.models import JobState
+from osdar_platform.models import CampaignState, JobState
 from service.dashboard import auth
 from service.dashboard.auth import BASE, ApiUser, DashSession, PageUser
-from service.deps import SessionDep, SettingsDep, StoreDep
+from service.deps import DispatcherDep, SessionDep, SettingsDep, StoreDep
 from service.downloads import stream_object
 from service.errors import Conflict, NotFound
 from service.schemas import ID_PATTERN
 from service.services import assets as svc_assets
+from service.services import campaign_view
+from service.services import campaigns as svc_campaigns
 from service.services import dashboard as view
 from service.services import jobs as svc_jobs
+from service.services import operator as svc_operator
 from service.services import sequences as svc_sequences
 
 HERE = Path(__file__).parent
@@ -133,8 +141,17 @@ def _pages(total: int, offset: int, limit: int, **query: Any) -> dict[str, str |
     }
 
 
+def _everyone(user: DashSession) -> bool:
+    """An operator key sees every key's jobs and campaigns."""
+    return bool(user.key.operator)
+
+
 def _job_rows(session: Any, user: DashSession, jobs: list[Any]) -> list[dict[str, Any]]:
-    names = view.sequence_names(session=session, owner=user.key, ids={j.sequence_id for j in jobs})
+    everyone = _everyone(user)
+    names = view.sequence_names(
+        session=session, owner=user.key, ids={j.sequence_id for j in jobs}, everyone=everyone
+    )
+    owners = view.key_names(session=session, ids={j.owner_id for j in jobs}) if everyone else {}
     return [
         {
             **view.job_status(j),
@@ -143,6 +160,8 @@ def _job_rows(session: Any, user: DashSession, jobs: list[Any]) -> list[dict[str
             "sequence_id": j.sequence_id,
             "sequence": names.get(j.sequence_id or "", "(deleted)"),
             "object": view.object_label(j.spec or {}),
+            "campaign_id": j.campaign_id,
+            "owner": owners.get(j.owner_id),
         }
         for j in jobs
     ]
@@ -212,6 +231,7 @@ def jobs_page(
     request: Request,
     user: PageUser,
     session: SessionDep,
+    dispatcher: DispatcherDep,
     offset: Offset = 0,
     state: JobState | None = None,
     sequence_id: Annotated[str | None, Query(max_length=64, pattern=ID_PATTERN)] = None,
@@ -223,12 +243,15 @@ def jobs_page(
         offset=offset,
         state=[state] if state else None,
         sequence_id=sequence_id or None,
+        everyone=_everyone(user),
     )
+    ops = svc_operator.overview(session, dispatcher.broker) if _everyone(user) else None
     return render(
         request,
         "jobs.html",
         user,
         nav="jobs",
+        ops=ops,
         jobs=_job_rows(session, user, rows),
         total=total,
         states=[s.value for s in JobState],
@@ -247,15 +270,21 @@ def jobs_page(
 @router.get("/jobs/{job_id}", response_class=HTMLResponse)
 def job_page(request: Request, job_id: JobId, user: PageUser, session: SessionDep) -> Response:
     try:
-        job = svc_jobs.get_job(session=session, owner=user.key, job_id=job_id)
+        job = svc_jobs.get_job(
+            session=session, owner=user.key, job_id=job_id, everyone=_everyone(user)
+        )
     except NotFound:
         return not_found(request, user, "job", job_id)
     spec = job.spec or {}
     seq = None
     if job.sequence_id:
-        names = view.sequence_names(session=session, owner=user.key, ids={job.sequence_id})
+        names = view.sequence_names(
+            session=session, owner=user.key, ids={job.sequence_id}, everyone=_everyone(user)
+        )
         seq = {"id": job.sequence_id, "name": names.get(job.sequence_id, job.sequence_id)}
-    events = svc_jobs.list_events(session=session, owner=user.key, job_id=job.id)
+    events = svc_jobs.list_events(
+        session=session, owner=user.key, job_id=job.id, everyone=_everyone(user)
+    )
     return render(
         request,
         "job.html",
@@ -285,7 +314,9 @@ def job_preview(
     store: StoreDep,
 ) -> Response:
     try:
-        key = svc_jobs.preview_key(session=session, owner=user.key, job_id=job_id, index=index)
+        key = svc_jobs.preview_key(
+            session=session, owner=user.key, job_id=job_id, index=index, everyone=_everyone(user)
+        )
         media = "image/jpeg" if key.endswith((".jpg", ".jpeg")) else "image/png"
         response = stream_object(store, key, range_header=None, media_type=media)
     except (NotFound, Conflict):  # no such preview, or the job has not SUCCEEDED
@@ -304,7 +335,9 @@ def job_archive(
     store: StoreDep,
 ) -> Response:
     try:
-        key = svc_jobs.archive_key(session=session, owner=user.key, job_id=job_id)
+        key = svc_jobs.archive_key(
+            session=session, owner=user.key, job_id=job_id, everyone=_everyone(user)
+        )
         name = key.rsplit("/", 1)[-1]
         media = "application/gzip" if name.endswith((".tar.gz", ".tgz")) else "application/x-tar"
         return stream_object(
@@ -328,16 +361,82 @@ def jobs_status(
     id: Annotated[list[str] | None, Query(max_length=view.MAX_POLL_IDS)] = None,
 ) -> JSONResponse:
     ids = [i for i in id or [] if re.fullmatch(ID_PATTERN, i)]  # others name no job
-    items = view.jobs_status(session=session, owner=user.key, ids=ids)
+    items = view.jobs_status(session=session, owner=user.key, ids=ids, everyone=_everyone(user))
     return JSONResponse({"jobs": items}, headers={"Cache-Control": "no-store"})
 
 
 @router.get("/api/jobs/{job_id}")
 def job_status(job_id: JobId, user: ApiUser, session: SessionDep) -> JSONResponse:
-    items = view.jobs_status(session=session, owner=user.key, ids=[job_id])
+    items = view.jobs_status(
+        session=session, owner=user.key, ids=[job_id], everyone=_everyone(user)
+    )
     if not items:
         return JSONResponse({"detail": f"job {job_id} not found"}, status_code=404)
     return JSONResponse(items[0], headers={"Cache-Control": "no-store"})
+
+
+# ---------------------------------------------------------------------------- campaigns
+@router.get("/campaigns", response_class=HTMLResponse)
+def campaigns_page(
+    request: Request,
+    user: PageUser,
+    session: SessionDep,
+    offset: Offset = 0,
+    state: CampaignState | None = None,
+) -> HTMLResponse:
+    everyone = _everyone(user)
+    rows, total = svc_campaigns.list_campaigns(
+        session=session, owner=user.key, limit=PAGE_SIZE, offset=offset,
+        state=[state] if state else None, everyone=everyone,
+    )  # fmt: skip
+    progress = svc_campaigns.progress_of(session, [c.id for c in rows])
+    owners = view.key_names(session=session, ids={c.owner_id for c in rows}) if everyone else {}
+    items = [{"c": c, "p": progress.get(c.id), "owner": owners.get(c.owner_id)} for c in rows]
+    return render(
+        request,
+        "campaigns.html",
+        user,
+        nav="campaigns",
+        campaigns=items,
+        total=total,
+        states=[s.value for s in CampaignState],
+        state=state.value if state else None,
+        pages=_pages(total, offset, PAGE_SIZE, state=state.value if state else None),
+    )
+
+
+@router.get("/campaigns/{campaign_id}", response_class=HTMLResponse)
+def campaign_page(
+    request: Request,
+    campaign_id: Annotated[str, PathParam(max_length=64, pattern=ID_PATTERN)],
+    user: PageUser,
+    session: SessionDep,
+    offset: Offset = 0,
+) -> Response:
+    try:
+        c = svc_campaigns.get_campaign(
+            session=session, owner=user.key, campaign_id=campaign_id, everyone=_everyone(user)
+        )
+    except NotFound:
+        return not_found(request, user, "campaign", campaign_id)
+    cameras = list(((c.spec or {}).get("job") or {}).get("cameras") or [])
+    rows = svc_campaigns.variant_rows(session, c.id, limit=PAGE_SIZE, offset=offset)
+    every = svc_campaigns.variant_rows(session, c.id, limit=100_000, offset=0)
+    camera = cameras[0] if cameras else ""
+    _measure, label, values = campaign_view.quality_values([v.row for v, _ in every], camera)
+    return render(
+        request,
+        "campaign.html",
+        user,
+        nav="campaigns",
+        c=c,
+        prog=svc_campaigns.progress_of(session, [c.id]).get(c.id),
+        variants=[campaign_view.variant_row(v, j, cameras) for v, j in rows],
+        histogram=campaign_view.histogram(values),
+        measure=label,
+        camera=camera,
+        pages=_pages(c.variants_total, offset, PAGE_SIZE),
+    )
 
 
 # ---------------------------------------------------------------------------- sequences

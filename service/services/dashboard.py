@@ -53,27 +53,38 @@ def job_status(job: Job) -> dict[str, Any]:
     }
 
 
-def jobs_status(*, session: Session, owner: ApiKey, ids: list[str]) -> list[dict[str, Any]]:
-    """:func:`job_status` of those of ``ids`` that belong to ``owner`` (others are left out)."""
+def jobs_status(
+    *, session: Session, owner: ApiKey, ids: list[str], everyone: bool = False
+) -> list[dict[str, Any]]:
+    """:func:`job_status` of those of ``ids`` that belong to ``owner`` (others are left out,
+    unless ``everyone``: an operator)."""
     wanted = list(dict.fromkeys(i for i in ids if i))[:MAX_POLL_IDS]
     if not wanted:
         return []
-    rows = session.scalars(select(Job).where(Job.owner_id == owner.id, Job.id.in_(wanted)))
+    mine = [] if everyone else [Job.owner_id == owner.id]
+    rows = session.scalars(select(Job).where(*mine, Job.id.in_(wanted)))
     by_id = {j.id: j for j in rows}
     return [job_status(by_id[i]) for i in wanted if i in by_id]
 
 
-def sequence_names(*, session: Session, owner: ApiKey, ids: set[str | None]) -> dict[str, str]:
-    """Sequence id -> name, for the owner's sequences among ``ids``."""
+def sequence_names(
+    *, session: Session, owner: ApiKey, ids: set[str | None], everyone: bool = False
+) -> dict[str, str]:
+    """Sequence id -> name, for the owner's sequences among ``ids`` (all: ``everyone``)."""
     wanted = sorted(i for i in ids if i)
     if not wanted:
         return {}
-    rows = session.execute(
-        select(Sequence.id, Sequence.name).where(
-            Sequence.owner_id == owner.id, Sequence.id.in_(wanted)
-        )
-    )
+    mine = [] if everyone else [Sequence.owner_id == owner.id]
+    rows = session.execute(select(Sequence.id, Sequence.name).where(*mine, Sequence.id.in_(wanted)))
     return {sid: name for sid, name in rows}
+
+
+def key_names(*, session: Session, ids: set[int]) -> dict[int, str]:
+    """API key id -> name (an operator's pages say whose a job is)."""
+    if not ids:
+        return {}
+    rows = session.execute(select(ApiKey.id, ApiKey.name).where(ApiKey.id.in_(sorted(ids))))
+    return {kid: name for kid, name in rows}
 
 
 # ---------------------------------------------------------------------------- spec

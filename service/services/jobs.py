@@ -203,9 +203,10 @@ def submit_job(
     return job, created
 
 
-def get_job(*, session: Session, owner: ApiKey, job_id: str) -> Job:
+def get_job(*, session: Session, owner: ApiKey, job_id: str, everyone: bool = False) -> Job:
+    """The key's job (404 for another key's, unless ``everyone``: an operator's dashboard)."""
     job = session.get(Job, job_id)
-    if job is None or job.owner_id != owner.id:  # another key's job does not exist
+    if job is None or (job.owner_id != owner.id and not everyone):  # others' do not exist
         raise NotFound(f"job {job_id} not found")
     return job
 
@@ -218,8 +219,12 @@ def list_jobs(
     offset: int,
     state: list[JobState] | None = None,
     sequence_id: str | None = None,
+    campaign_id: str | None = None,
+    everyone: bool = False,
 ) -> tuple[list[Job], int]:
-    conds = [Job.owner_id == owner.id]
+    conds: list[Any] = [] if everyone else [Job.owner_id == owner.id]
+    if campaign_id is not None:
+        conds.append(Job.campaign_id == campaign_id)
     if state:
         conds.append(Job.state.in_(state))
     if sequence_id is not None:
@@ -248,19 +253,21 @@ def cancel_job(
     return job
 
 
-def list_events(*, session: Session, owner: ApiKey, job_id: str) -> list[JobEvent]:
-    job = get_job(session=session, owner=owner, job_id=job_id)
+def list_events(
+    *, session: Session, owner: ApiKey, job_id: str, everyone: bool = False
+) -> list[JobEvent]:
+    job = get_job(session=session, owner=owner, job_id=job_id, everyone=everyone)
     return list(
         session.scalars(select(JobEvent).where(JobEvent.job_id == job.id).order_by(JobEvent.id))
     )
 
 
-def finished_job(*, session: Session, owner: ApiKey, job_id: str) -> Job:
+def finished_job(*, session: Session, owner: ApiKey, job_id: str, everyone: bool = False) -> Job:
     """The job if its results may be served: every result endpoint (archive, metrics,
     previews) asks here, and only a SUCCEEDED job has results; 409 otherwise (404 for
     another key's job). SUCCEEDED is set in the same row update that publishes the
     archive (worker/orchestration/state.publish_result), so a job seen SUCCEEDED has one."""
-    job = get_job(session=session, owner=owner, job_id=job_id)
+    job = get_job(session=session, owner=owner, job_id=job_id, everyone=everyone)
     if job.state != JobState.SUCCEEDED or job.result_key is None:
         raise Conflict(
             f"job {job_id} is {job.state.value}: its results are served once it SUCCEEDED"
@@ -268,9 +275,9 @@ def finished_job(*, session: Session, owner: ApiKey, job_id: str) -> Job:
     return job
 
 
-def archive_key(*, session: Session, owner: ApiKey, job_id: str) -> str:
+def archive_key(*, session: Session, owner: ApiKey, job_id: str, everyone: bool = False) -> str:
     """Store key of the published archive (409 unless SUCCEEDED)."""
-    job = finished_job(session=session, owner=owner, job_id=job_id)
+    job = finished_job(session=session, owner=owner, job_id=job_id, everyone=everyone)
     assert job.result_key is not None  # finished_job checked it
     return job.result_key
 
@@ -281,14 +288,18 @@ def job_metrics(*, session: Session, owner: ApiKey, job_id: str) -> dict[str, An
     return job.metrics or {}
 
 
-def preview_keys(*, session: Session, owner: ApiKey, job_id: str) -> list[str]:
+def preview_keys(
+    *, session: Session, owner: ApiKey, job_id: str, everyone: bool = False
+) -> list[str]:
     """Store keys of a SUCCEEDED job's preview images (409 otherwise)."""
-    job = finished_job(session=session, owner=owner, job_id=job_id)
+    job = finished_job(session=session, owner=owner, job_id=job_id, everyone=everyone)
     return [str(k) for k in (job.previews or [])]
 
 
-def preview_key(*, session: Session, owner: ApiKey, job_id: str, index: int) -> str:
-    keys = preview_keys(session=session, owner=owner, job_id=job_id)
+def preview_key(
+    *, session: Session, owner: ApiKey, job_id: str, index: int, everyone: bool = False
+) -> str:
+    keys = preview_keys(session=session, owner=owner, job_id=job_id, everyone=everyone)
     if not 0 <= index < len(keys):
         raise NotFound(f"job {job_id} has no preview {index}")
     return keys[index]

@@ -19,9 +19,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from sqlalchemy import func, select, update
+from sqlalchemy import select, update
 
-from osdar_platform.models import Campaign, CampaignState, Job, JobState
+from osdar_platform.models import CampaignState, Job, JobState
 from tests.conftest_service import Api, make_settings, memory_celery, sent_tasks
 from worker.campaign.expand import expand
 from worker.campaign.service_expand import expand_campaign_stage
@@ -266,10 +266,10 @@ def test_final_state_of_the_variants() -> None:
 
 
 def test_campaign_jobs_do_not_count_against_the_per_key_job_limit(api: Api) -> None:
-    with api.sessions() as s:
-        n = s.scalar(select(func.count()).select_from(Campaign))
-    assert n and n > 0
     settings = api.client.app.state.settings
+    with api.sessions() as s:
+        before = {j.id: j.state for j in s.scalars(select(Job))}
+    assert any(j.campaign_id for j in campaign_jobs_all(api))
     with api.sessions.begin() as s:
         s.execute(update(Job).where(Job.campaign_id.is_not(None)).values(state=JobState.QUEUED))
         s.execute(update(Job).where(Job.campaign_id.is_(None)).values(state=JobState.CANCELLED))
@@ -281,9 +281,16 @@ def test_campaign_jobs_do_not_count_against_the_per_key_job_limit(api: Api) -> N
         assert r.status_code == 429, r.text  # the limit holds for jobs of their own
     finally:
         settings.max_concurrent_jobs_per_key = limit
-        with api.sessions.begin() as s:
-            s.execute(update(Job).where(Job.campaign_id.is_not(None))
+        with api.sessions.begin() as s:  # every other test's jobs as they were
+            for job_id, state in before.items():
+                s.execute(update(Job).where(Job.id == job_id).values(state=state))
+            s.execute(update(Job).where(Job.id.not_in(list(before)))
                       .values(state=JobState.CANCELLED))  # fmt: skip
+
+
+def campaign_jobs_all(api: Api) -> list[Job]:
+    with api.sessions() as s:
+        return list(s.scalars(select(Job).where(Job.campaign_id.is_not(None))))
 
 
 # ------------------------------------------------------------------------------ the CLI
@@ -374,3 +381,91 @@ def test_cli_submit_resolves_paths_and_download_resumes(
         assert main(["campaign", "download", cid, "--out", str(out), *common]) == 0
     assert f"bytes={len(data) // 2}-" in ranges
     assert archive.read_bytes() == data and not partial.exists()
+
+
+# ------------------------------------------------------------------------------ dashboard
+def _dashboard(api: Api, secret: str) -> Any:
+    """A TestClient logged in to the dashboard with ``secret``."""
+    import re
+
+    from fastapi.testclient import TestClient
+
+    client = TestClient(api.client.app)
+    page = client.get("/dashboard/login")
+    token = re.search(r'name="token" value="([^"]+)"', page.text)
+    assert token is not None, page.text
+    r = client.post("/dashboard/login", data={"api_key": secret, "token": token.group(1),
+                                               "next": "/dashboard/jobs"},
+                    follow_redirects=False)  # fmt: skip
+    assert r.status_code == 303, r.text
+    return client
+
+
+def _partial_campaign(api: Api) -> dict[str, Any]:
+    items = api.client.get("/v1/campaigns?state=PARTIAL", headers=api.h()).json()["items"]
+    assert items, "test_a_campaign_runs_one_preparation_and_a_failing_variant_fails_alone first"
+    detail: dict[str, Any] = api.client.get(items[0]["links"]["self"], headers=api.h()).json()
+    return detail
+
+
+def test_the_campaign_page_shows_previews_and_a_quality_histogram(api: Api) -> None:
+    import re
+
+    c = _partial_campaign(api)
+    alice = _dashboard(api, api.keys["alice"])
+    listing = alice.get("/dashboard/campaigns")
+    assert listing.status_code == 200 and f"/dashboard/campaigns/{c['id']}" in listing.text
+    page = alice.get(f"/dashboard/campaigns/{c['id']}")
+    assert page.status_code == 200
+    svg = re.search(r"<svg class=\"histogram\".*?</svg>", page.text, re.S)
+    assert svg is not None, page.text
+    bars = re.findall(r'<rect x="[^"]+" y="[^"]+" width="[^"]+" height="([^"]+)"', svg.group(0))
+    # one variant made (the other failed): one bar of full height, nine empty
+    assert len(bars) == 10 and sorted(float(h) for h in bars)[-2:] == [0.0, 140.0]
+    rpe = c["variants"][0]["row"]["quality"]["rgb_center"]["rpe_px_mean"]
+    assert f"{rpe:.2f}" in page.text  # the table shows the manifest's value
+    thumbs = re.findall(r'<img class="thumb" src="([^"]+)"', page.text)
+    assert len(thumbs) == 1  # the failed variant has no preview
+    png = alice.get(thumbs[0])
+    assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
+    # the job list links each variant job to its campaign
+    jobs = alice.get("/dashboard/jobs")
+    assert f'href="/dashboard/campaigns/{c["id"]}"' in jobs.text
+    assert "Operations" not in jobs.text  # an ordinary key sees no operator panel
+
+
+def test_an_ordinary_key_sees_only_its_own_and_an_operator_sees_everything(api: Api) -> None:
+    import re
+
+    from osdar_platform.keys import create_api_key
+
+    c = _partial_campaign(api)
+    job_id = c["variants"][0]["job_id"]
+    bob = _dashboard(api, api.keys["bob"])
+    assert bob.get(f"/dashboard/campaigns/{c['id']}").status_code == 404
+    assert c["id"] not in bob.get("/dashboard/campaigns").text
+    assert bob.get(f"/dashboard/jobs/{job_id}").status_code == 404
+    assert job_id not in bob.get("/dashboard/jobs").text
+    assert bob.get(f"/dashboard/api/jobs/{job_id}").status_code == 404
+
+    with api.sessions.begin() as s:
+        pepper = api.settings.api_key_pepper.get_secret_value()
+        _, secret = create_api_key(session=s, name="ops", operator=True, pepper=pepper)
+    ops = _dashboard(api, secret)
+    assert ops.get(f"/dashboard/campaigns/{c['id']}").status_code == 200
+    assert c["id"][:8] in ops.get("/dashboard/campaigns").text
+    assert ops.get(f"/dashboard/jobs/{job_id}").status_code == 200
+    assert ops.get(f"/dashboard/api/jobs/{job_id}").json()["state"] == "SUCCEEDED"
+    assert ops.get(f"/dashboard/jobs/{job_id}/archive").status_code == 200
+    page = ops.get("/dashboard/jobs").text
+    assert "Operations" in page and job_id[:8] in page
+    # the failure rate of the last 24 h, against the rows: FAILED / (SUCCEEDED + FAILED)
+    with api.sessions() as s:
+        states = [j.state for j in s.scalars(select(Job).where(Job.finished_at.is_not(None)))]
+    ok, failed = states.count(JobState.SUCCEEDED), states.count(JobState.FAILED)
+    assert failed > 0 and f"{100 * failed / (ok + failed):.1f} % ({failed} failed" in page
+    # the memory broker has no worker to answer a ping: zero alive, said as such
+    assert re.search(r'class="js-workers">0<', page), page
+    # the operator's role is for the dashboard: the API still scopes it to its own objects
+    as_ops = {"Authorization": f"Bearer {secret}"}
+    assert api.client.get(f"/v1/campaigns/{c['id']}", headers=as_ops).status_code == 404

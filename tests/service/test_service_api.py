@@ -48,6 +48,16 @@ def publish_fake_result(api: Api, job_id: str, archive: bytes) -> None:
         )
 
 
+def campaign_spec(api: Api) -> dict[str, Any]:
+    """A one-rule campaign on the API's sequence (it stays PENDING: no worker here)."""
+    return {
+        "name": "authz",
+        "sequences": [{"id": api.sequence_id}],
+        "obstacles": [{"builtin": "rock"}],
+        "job": {"cameras": ["rgb_center"]},
+    }
+
+
 def upload_asset(api: Api, who: str = "alice", data: bytes = TETRA_OBJ, ft: str = "obj") -> Any:
     return api.client.post(
         "/v1/assets",
@@ -141,7 +151,13 @@ def _authed_routes(api: Api, ids: dict[str, str]) -> list[tuple[str, str]]:
 
 
 def test_no_key_and_wrong_key_are_401_everywhere(api: Api) -> None:
-    ids = {"sequence_id": api.sequence_id, "job_id": "x", "asset_id": "x", "index": "0"}
+    ids = {
+        "sequence_id": api.sequence_id,
+        "job_id": "x",
+        "asset_id": "x",
+        "campaign_id": "x",
+        "index": "0",
+    }
     routes = _authed_routes(api, ids)
     assert len(routes) >= 15
     for method, path in routes:
@@ -160,18 +176,20 @@ def test_another_keys_objects_are_404_on_every_route(api: Api) -> None:
     job = submit(api)
     publish_fake_result(api, job["id"], b"archive-bytes")
     asset = upload_asset(api).json()
+    campaign = api.client.post("/v1/campaigns", json=campaign_spec(api), headers=api.h()).json()
     ids = {
         "sequence_id": api.sequence_id,
         "job_id": job["id"],
         "asset_id": asset["id"],
+        "campaign_id": campaign["id"],
         "index": "0",
     }
     routes = [
         (m, p)
         for m, p in _authed_routes(api, ids)
-        if any(v in p for v in (api.sequence_id, job["id"], asset["id"]))
+        if any(v in p for v in (api.sequence_id, job["id"], asset["id"], campaign["id"]))
     ]
-    assert len(routes) == 11  # every route with an id
+    assert len(routes) == 15  # every route with an id (4 of campaigns)
     for method, path in routes:
         r = api.client.request(method, path, headers=api.h("bob"))
         assert r.status_code == 404, (method, path, r.text)
@@ -185,6 +203,10 @@ def test_another_keys_objects_are_404_on_every_route(api: Api) -> None:
     spec = api.job_spec(object={"asset_id": asset["id"]})
     assert api.client.post("/v1/jobs", json=spec, headers=api.h("bob")).status_code == 404
     assert api.client.get("/v1/jobs", headers=api.h("bob")).json()["total"] == 0
+    # ... nor in a campaign, and sees none of hers
+    r = api.client.post("/v1/campaigns", json=campaign_spec(api), headers=api.h("bob"))
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "sequences", 0, "id"]
+    assert api.client.get("/v1/campaigns", headers=api.h("bob")).json()["total"] == 0
 
 
 # ------------------------------------------------------------------------------ jobs

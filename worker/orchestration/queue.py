@@ -137,6 +137,28 @@ def send_task(name: str, args: list[Any], *, task_id: str | None = None, app: An
     _celery_app(app).send_task(name, args=args, task_id=task_id)
 
 
+def broker_overview(*, app: Any = None, timeout_s: float = 1.0) -> dict[str, Any]:
+    """What an operator sees of the workers: the names of those answering a ping within
+    ``timeout_s`` (None: the broker could not be asked) and the messages waiting in the
+    job queue (None: unknown); ``error`` says what could not be read."""
+    celery = _celery_app(app)
+    out: dict[str, Any] = {"workers": None, "queue_messages": None, "error": None}
+    try:
+        replies = celery.control.ping(timeout=timeout_s) or []
+        out["workers"] = sorted(str(name) for reply in replies for name in reply)
+    except Exception as exc:  # a broker without remote control, or down
+        out["error"] = f"ping: {exc}"[:300]
+    try:
+        with celery.connection_for_read() as conn:
+            q = conn.default_channel.queue_declare(
+                queue=celery.conf.task_default_queue, passive=True
+            )
+            out["queue_messages"] = int(q.message_count)
+    except Exception as exc:
+        out["error"] = (out["error"] or "") + f" queue: {exc}"[:300]
+    return out
+
+
 def requeue_pending(
     *,
     older_than_s: float = 60.0,
@@ -167,6 +189,7 @@ __all__ = [
     "TASK_EXPAND_CAMPAIGN",
     "TASK_FINALIZE_CAMPAIGN",
     "TASK_RUN_JOB",
+    "broker_overview",
     "enqueue_job",
     "request_cancel",
     "requeue_pending",
