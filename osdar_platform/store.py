@@ -185,6 +185,7 @@ class S3Store:
                 # one attempt per call: the retries are osdar_platform/retry.py's alone
                 retries={"total_max_attempts": 1, "mode": "standard"},
                 s3={"addressing_style": "path"},
+                signature_version="s3v4",  # presigned URLs too (X-Amz-Expires, up to 7 days)
                 connect_timeout=5,
                 read_timeout=60,
             ),
