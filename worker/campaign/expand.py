@@ -330,10 +330,19 @@ class _Expansion:
             Placed(fp, geom.s0_job + s_a + t * (s_b - s_a), o_a + t * (o_b - o_a), yaw)
             for t in np.linspace(0.0, 1.0, n)
         ]
+        start_on = {pl.index for pl in geom.platforms
+                    if bool(pl.contains(np.array([[spots[0].s, spots[0].offset]]))[0])}  # fmt: skip
         for sp in spots:
             lo, hi = sp.s_range()
             if lo < 0.0 or hi > geom.length:
                 return f"its path leaves the prepared ego track (0..{geom.length:.0f} m)", spots
+            samples = sp.samples(c.clearance_m)
+            for pl in geom.platforms:  # no walking through a platform's wall
+                inside = pl.contains(samples)
+                if (pl.index in start_on and not inside.all()) or (
+                    pl.index not in start_on and inside.any()
+                ):
+                    return f"its path crosses the edge of platform {pl.index}", spots
             for pole in geom.poles:
                 if sp.distance_to_point(np.array([pole.s, pole.lateral])) < (
                     pole.radius + c.clearance_m

@@ -80,7 +80,8 @@ span/2); the direction (left or right, with or against the train) and the speed 
 drawn per object, ``start_s`` [low, high] seconds after the first frame. The zone's rules
 hold at the path's middle; along the whole path the object keeps ``clearance_m`` from the
 poles and ``min_spacing_m`` from the variant's other objects (every position of a moving
-one), and stays on the prepared track's extent. The variant's job carries the path in
+one), never walks through a platform's edge (it stays on the platform it starts on, or
+off all of them) and stays on the prepared track's extent. The variant's job carries the path in
 track coordinates (``motion``: :class:`~worker.augmentation.spec.MotionModel`).
 
 Variants: for each sequence, every (draw, placement, obstacle, variation seed) in this
