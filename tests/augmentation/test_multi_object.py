@@ -140,3 +140,12 @@ def test_old_single_object_specs_still_parse() -> None:
         AugmentSpec(object=ObjectSource(builtin="rock"), objects=(NEAR,))
     with pytest.raises(ValueError, match="objects\\[1\\]: object needs"):
         AugmentSpec.from_job_spec({"objects": [old, {"placement": {"s": 40}}]})
+
+
+def test_the_job_spec_sets_the_gauge_envelope() -> None:
+    spec = AugmentSpec.from_job_spec(
+        {"object": {"builtin": "rock"}, "gauge": {"margin_m": 0.3, "height_m": 5.0}}
+    )
+    assert spec.gauge.edge_m == pytest.approx(1.575 + 0.3) and spec.gauge.height_m == 5.0
+    with pytest.raises(ValueError, match="margin_m"):
+        AugmentSpec.from_job_spec({"object": {"builtin": "rock"}, "gauge": {"margin_m": -1}})

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from osdar_platform.catalog import BUILTIN_OBJECTS
 from tests.campaign.scenes import platform, straight_prepared
+from worker.augmentation.spec import AugmentSpec
 from worker.campaign.expand import expand
 from worker.campaign.spec import load_spec
 
@@ -44,3 +45,36 @@ def test_the_json_example_expands() -> None:
     variants = expand(spec, prepared)
     assert sum(len(v.objects) for v in variants) == spec.object_count()
     assert all(len(v.objects) <= 3 for v in variants)
+
+
+def test_the_multi_object_example_groups_three_objects_with_walkers() -> None:
+    spec = load_spec(EXAMPLES / "multi_object.yaml")
+    prepared = {s.key: straight_prepared() for s in spec.sequences}
+    variants = expand(spec, prepared)
+    assert [len(v.objects) for v in variants] == [3, 3, 3, 3]
+    moving = [o for v in variants for o in v.objects if o.motion is not None]
+    assert sorted({o.class_name for o in moving}) == ["cow", "person"] and len(moving) == 6
+    for v in variants:
+        assert "objects" in v.job and all(
+            ("motion" in j) == (o.motion is not None)
+            for j, o in zip(v.job["objects"], v.objects, strict=True)
+        )
+        for o in v.objects:
+            if o.motion is not None:
+                speed = o.motion["speed_mps"]
+                assert (1.0 <= speed <= 1.6) if o.class_name == "person" else (0.3 <= speed <= 0.8)
+
+
+def test_the_campaigns_gauge_envelope_reaches_every_job() -> None:
+    spec = load_spec(EXAMPLES / "campaign_rules.json").model_copy(deep=True)
+    data = spec.model_dump(mode="json")
+    data["job"]["gauge"] = {"margin_m": 0.35}
+    spec = type(spec).model_validate(data)
+    prepared = {
+        "out/station": straight_prepared(planes=[platform(40.0, 250.0, -1.75, -9.0)]),
+        "out/fire_site": straight_prepared(),
+    }
+    variants = expand(spec, prepared)
+    assert variants and all(v.job["gauge"] == {"margin_m": 0.35} for v in variants)
+    aug = AugmentSpec.from_job_spec(variants[0].job_spec())
+    assert aug.gauge.margin_m == 0.35 and aug.gauge.half_width_m == 1.575

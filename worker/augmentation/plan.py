@@ -194,7 +194,8 @@ def load_object(source: ObjectSource | AugmentSpec) -> ObjectMesh:
     o = source if isinstance(source, ObjectSource) else source.scene_objects[0].object
     try:
         if o.builtin is not None:
-            mesh = build_obstacle(o.builtin, seed=o.seed, detail=o.detail, scale=o.scale)
+            mesh = build_obstacle(o.builtin, seed=o.seed, detail=o.detail, scale=o.scale,
+                                  pose=o.pose)  # fmt: skip
         else:
             if o.mesh_path is not None:
                 path = Path(o.mesh_path)
@@ -203,7 +204,8 @@ def load_object(source: ObjectSource | AugmentSpec) -> ObjectMesh:
                 data, ftype = path.read_bytes(), o.file_type or path.suffix.lstrip(".")
             else:
                 data, ftype = o.mesh_bytes or b"", o.file_type or ""
-            mesh = load_user_mesh(data, ftype, scale=o.mesh_scale, up=o.up, name=o.class_name)
+            mesh = load_user_mesh(data, ftype, scale=o.mesh_scale, up=o.up, name=o.class_name,
+                                  animation_time_s=o.animation_time_s)  # fmt: skip
             if o.scale != 1.0:
                 mesh.vertices = mesh.vertices * o.scale
     except (MeshError, ValueError) as exc:
@@ -587,7 +589,11 @@ def _planned_object(
             walked.setdefault(st, {})[f] = float(mv.walked_m[k])
             if st == clock:
                 velocity[f] = mv.velocity_world[k]
-        if so.motion.gait and so.object.builtin is not None and obj.meta.get("class") == "person":
+        walks = obj.meta.get("class") == "person" and obj.meta.get("pose", "standing") in (
+            "standing",
+            "walking",
+        )
+        if so.motion.gait and so.object.builtin is not None and walks:
             h = float(obj.size[2])
             phases = {
                 st: {f: gait_phase(d, h) for f, d in per.items()} for st, per in walked.items()

@@ -65,9 +65,11 @@ class ObjectSource(_Section):
     name: str | None = None
     scale: float = Field(1.0, gt=0.0, le=100.0)
     mesh_scale: float | None = Field(None, gt=0.0)
-    up: str = "z"
+    up: str | None = None  # None: the format's own (glTF +Y, OBJ/PLY/STL +Z)
     seed: int = 0
     detail: float = Field(1.0, ge=0.05, le=4.0)
+    pose: str | None = None  # built-in person: standing, walking, lying, crouching, sitting
+    animation_time_s: float | None = Field(None, ge=0.0, le=3600.0)  # glTF skins / morphs
 
     @model_validator(mode="after")
     def _one_source(self) -> ObjectSource:
@@ -299,7 +301,9 @@ class AugmentSpec(_Section):
         An ``object.asset_id`` must be resolved by the caller (the asset store):
         pass the asset's ``mesh_bytes`` and ``file_type``. ``render.shadow`` false sets
         the shadow strength to 0; ``clicks`` ({camera: {frame: [u, v]}}) become the
-        preparation's clicks of a landmark named ``job``.
+        preparation's clicks of a landmark named ``job``; ``gauge`` (GaugeOutline's
+        fields) sets the envelope of the gauge labels; ``objects`` / ``motion``: several
+        objects, moving ones (module docstring).
         """
         if d.get("objects"):
             if d.get("object") is not None:
@@ -322,8 +326,10 @@ class AugmentSpec(_Section):
         )
         clicks = d.get("clicks")
         fr = d.get("frame_range")
+        gauge = GaugeOutline.model_validate(d["gauge"]) if d.get("gauge") else GaugeOutline()
         return cls(
             **one,
+            gauge=gauge,
             cameras=tuple(d["cameras"]) if d.get("cameras") else None,
             lidar=bool(d.get("lidar", True)),
             frame_range=None if fr is None else (int(fr[0]), int(fr[1])),

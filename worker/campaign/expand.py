@@ -430,6 +430,8 @@ class _Expansion:
             "strategy": spec.job.strategy,
             "render": spec.job.render.model_dump(mode="json"),
         }
+        if spec.job.gauge is not None:
+            base_job["gauge"] = spec.job.gauge.model_dump(mode="json", exclude_none=True)
         variants: list[Variant] = []
         for i, entry in enumerate(spec.sequences):
             prepared, geom = self.geometry(i, entry)

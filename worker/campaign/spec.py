@@ -345,8 +345,20 @@ class Constraints(_Spec):
     max_attempts: int = Field(400, ge=1, le=100_000)
 
 
+class GaugeOptions(_Spec):
+    """The clearance envelope of the gauge labels (the fields of
+    :class:`~worker.augmentation.gauge.GaugeOutline`, same defaults; None: its default)."""
+
+    half_width_m: float | None = Field(None, gt=0.0, le=5.0)
+    margin_m: float | None = Field(None, ge=0.0, le=5.0)
+    floor_m: float | None = Field(None, ge=-1.0, le=2.0)
+    height_m: float | None = Field(None, gt=0.0, le=10.0)
+    curve_widening_m2: float | None = Field(None, ge=0.0, le=50.0)
+
+
 class JobOptions(_Spec):
-    """The job fields shared by every variant (as in today's job spec)."""
+    """The job fields shared by every variant (as in today's job spec); ``gauge`` sets the
+    envelope of the gauge labels (e.g. ``{margin_m: 0.3}``)."""
 
     cameras: list[CameraName] = Field(
         default_factory=lambda: ["rgb_center", "rgb_highres_center"], min_length=1, max_length=8
@@ -354,6 +366,7 @@ class JobOptions(_Spec):
     lidar: bool = True
     strategy: Strategy = "auto"
     render: RenderOptions = Field(default_factory=RenderOptions)
+    gauge: GaugeOptions | None = None
 
     @field_validator("cameras")
     @classmethod
@@ -470,6 +483,7 @@ __all__ = [
     "CampaignSpec",
     "Constraints",
     "ExplicitPlacement",
+    "GaugeOptions",
     "JobOptions",
     "Obstacle",
     "ObstacleMotion",
