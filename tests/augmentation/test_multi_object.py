@@ -122,10 +122,18 @@ def test_each_object_is_its_own_annotated_object(runs, tmp_path: Path) -> None:
     assert all(v == [0.0, 0.0, 0.0] for (_, kind), v in speeds.items() if kind == "Cuboid")
     raw = json.loads(labels.read_text())["openlabel"]
     f0 = str(plan.frames[0])
+    track_m = []
     for u in uuids:
         cub = raw["frames"][f0]["objects"][u]["object_data"]["cuboid"][0]
         vec = {a["name"]: a["val"] for a in cub["attributes"]["vec"]}
         assert vec["velocity"] == [0.0, 0.0, 0.0]  # static objects
+        flags = {a["name"]: a["val"] for a in cub["attributes"]["boolean"]}
+        nums = {a["name"]: a["val"] for a in cub["attributes"]["num"]}
+        assert flags["gaugeIntrusion"] is True  # both stand on the track
+        track_m.append(nums["trackDistanceM"])
+    # each object's own gauge label: the horse (across the track, 30 m) is ~8 m farther
+    # along the track than the person (22 m), less the two bodies' half-lengths
+    assert 6.5 < track_m[1] - track_m[0] < 8.0, track_m
 
 
 def test_old_single_object_specs_still_parse() -> None:
