@@ -28,9 +28,10 @@ def _position(v: Variant) -> str:
             if r.distance_first_view_m is None
             else f", in view at {r.distance_first_view_m:.1f} m (frame {r.first_view_frame})"
         )
+        moves = "" if o.motion is None else f", moving at {o.motion['speed_mps']:g} m/s"
         parts.append(
             f"{o.class_name} #{o.variation_seed} {r.zone or 'explicit'} {where} "
-            f"yaw={r.yaw_deg:.1f} deg{seen}"
+            f"yaw={r.yaw_deg:.1f} deg{seen}{moves}"
         )
     return "; ".join(parts)
 
