@@ -1,4 +1,4 @@
-"""User meshes: glTF / GLB, OBJ (+ MTL and textures in an archive), PLY and STL uploads
+"""User meshes: glTF / GLB, OBJ (+ MTL and textures in an archive), PLY, STL and OFF uploads
 turned into an :class:`ObjectMesh`.
 
 Untrusted input (RELIABILITY.md): the bytes are parsed with an explicit file type (never
@@ -64,10 +64,10 @@ from renderer.mesh import Material, ObjectMesh
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
-MESH_TYPES = ("glb", "gltf", "obj", "ply", "stl")
+MESH_TYPES = ("glb", "gltf", "obj", "ply", "stl", "off")
 ARCHIVE_TYPES = ("zip", "tar", "tar.gz", "tgz")
 FILE_TYPES = MESH_TYPES + ARCHIVE_TYPES
-DEFAULT_UP = {"glb": "y", "gltf": "y", "obj": "z", "ply": "z", "stl": "z"}
+DEFAULT_UP = {"glb": "y", "gltf": "y", "obj": "z", "ply": "z", "stl": "z", "off": "z"}
 """The up axis assumed for each format when ``up`` is not given."""
 DEFAULT_SRGB = 0.58
 """Grey (sRGB) of meshes without colours."""
@@ -522,6 +522,11 @@ def _precheck(data: bytes, ft: str, max_vertices: int, max_faces: int, *,
         else:
             raise MeshError("not an STL file (too short)")
         _check_counts(3 * nf, nf, max_vertices, max_faces)
+    elif ft == "off":
+        m = re.match(rb"\s*OFF\s+(\d+)\s+(\d+)", data[:4096])
+        if m is None:
+            raise MeshError("not an OFF file (no 'OFF' header with vertex and face counts)")
+        _check_counts(int(m.group(1)), int(m.group(2)), max_vertices, max_faces)
     elif ft == "obj":
         nv = data.count(b"\nv ") + data.startswith(b"v ")
         nf = data.count(b"\nf ") + data.startswith(b"f ")

@@ -28,7 +28,7 @@ def to_bytes(mesh: trimesh.Trimesh, ft: str) -> bytes:
     return data.encode() if isinstance(data, str) else data
 
 
-@pytest.mark.parametrize("ft", ["glb", "obj", "ply"])
+@pytest.mark.parametrize("ft", ["glb", "obj", "ply", "stl", "off"])
 def test_round_trip_from_bytes(ft: str) -> None:
     m = load_user_mesh(to_bytes(colored_box(offset=(5.0, -3.0, 7.0)), ft), ft, name="crate")
     # glTF is +Y up with its front +Z (its z -> our x, x -> y, y -> z); OBJ/PLY +Z up
