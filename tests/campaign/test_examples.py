@@ -78,3 +78,13 @@ def test_the_campaigns_gauge_envelope_reaches_every_job() -> None:
     assert variants and all(v.job["gauge"] == {"margin_m": 0.35} for v in variants)
     aug = AugmentSpec.from_job_spec(variants[0].job_spec())
     assert aug.gauge.margin_m == 0.35 and aug.gauge.half_width_m == 1.575
+
+
+def test_the_render_cost_bench_makes_the_same_objects_together_and_apart() -> None:
+    together = load_spec(EXAMPLES / "bench" / "three_objects_together.yaml")
+    apart = load_spec(EXAMPLES / "bench" / "three_objects_apart.yaml")
+    prepared = {"out/fire_site": straight_prepared()}
+    (one,) = expand(together, prepared)
+    three = expand(apart, prepared)
+    assert [len(v.objects) for v in three] == [1, 1, 1]
+    assert [o.resolved for o in one.objects] == [v.objects[0].resolved for v in three]
