@@ -20,9 +20,11 @@ from worker.preparation.calibration_point import (
     ClicksError,
     calibration_point_from_clicks,
     camera_at_resolution,
+    points_near_rays,
     propose_pole_tops,
 )
 from worker.preparation.config import CalibrationConfig
+from worker.preparation.frame_clouds import FrameClouds
 from worker.preparation.registration import points_near, register_clouds
 from worker.preparation.scene_elements import Pole
 
@@ -234,3 +236,61 @@ def test_auto_mode_proposes_the_most_visible_pole_top(scene: dict) -> None:
     assert abs(views[0] - n_true) <= 0.2 * n_true + 2  # occlusion is not modelled
     assert np.allclose(cp.xyz, best["xyz"])
     assert cp.landmark == f"{best['id']}_top"
+
+
+def _frame_points(seq: Sequence, track: object) -> object:
+    """``frame_points`` of :func:`points_near_rays`: every frame at full density."""
+    clouds = FrameClouds(seq, max_range=200.0)
+    frames = clouds.frames
+    T_all = track.interpolate(np.array([clouds.frame_times[f] for f in frames]))  # type: ignore[attr-defined]
+    return lambda: ((T, clouds.get(f).p_base32) for f, T in zip(frames, T_all, strict=True))
+
+
+def test_points_near_rays_are_the_points_in_the_cone(scene: dict) -> None:
+    seq, gt = scene["seq"], scene["gt"]
+    lm = _measured_pole_tops(scene)[0]
+    top = np.asarray(lm["xyz"], dtype=np.float64)
+    origin = gt.T[0, :3, 3] + np.array([0.0, 0.0, 3.0])
+    d = (top - origin) / np.linalg.norm(top - origin)
+    tol = 0.01
+    got = points_near_rays(_frame_points(seq, gt))(origin[None], d[None], tol)
+    full = register_clouds(seq, gt, voxel_size=0.0, max_range=200.0).xyz
+    v = full - origin
+    along = v @ d
+    perp = np.linalg.norm(v - along[:, None] * d, axis=1)
+    inside = (along > 0.5) & (perp <= tol * along)
+    margin = np.abs(perp - tol * along) > 1e-4  # float32 selection: away from the edge
+    assert len(got) >= int((inside & margin).sum()) > 0
+    assert len(got) <= int((inside | ~margin).sum())
+    v_got = got - origin
+    a_got = v_got @ d
+    assert np.all(np.linalg.norm(v_got - a_got[:, None] * d, axis=1) <= tol * a_got + 1e-4)
+
+
+def test_a_landmark_missing_from_the_registered_cloud_is_found_near_the_rays(
+    scene: dict,
+) -> None:
+    """A registered cloud without the landmark's points (a pole top that only frames left
+    out of it were hit at): the point nearest the rays is on another surface, refined
+    among the points around that one; the frames' points near the click rays hold the
+    landmark's own."""
+    seq, gt = scene["seq"], scene["gt"]
+    rays = points_near_rays(_frame_points(seq, gt))
+    for lm in _measured_pole_tops(scene):
+        top = np.asarray(lm["xyz"], dtype=np.float64)
+        cloud = scene["cloud"].xyz
+        without = cloud[np.linalg.norm(cloud - top, axis=1) > 1.0]
+        args = (without, gt, scene["cams"], scene["times"], _clicks(lm), CalibrationConfig())
+        dense = lambda c, r: points_near(seq, gt, c, r)  # noqa: E731
+        before = calibration_point_from_clicks(*args, dense=dense)
+        after = calibration_point_from_clicks(*args, dense=dense, dense_rays=rays)
+        assert after.xyz is not None and after.refined
+        e_after = float(np.linalg.norm(after.xyz - top))
+        r_after = after.summary()["residual_mean_px"]
+        # the pole's radius is 0.12 m: the nearest measured point is on its rim
+        assert e_after < 0.2, (lm["id"], e_after)
+        assert r_after < 15.0, (lm["id"], r_after)  # as with the whole cloud (test above)
+        if before.xyz is not None:  # else: nothing within the search radius at all
+            e_before = float(np.linalg.norm(before.xyz - top))
+            assert e_before > 0.5, (lm["id"], e_before)
+            assert r_after < 0.5 * before.summary()["residual_mean_px"], lm["id"]

@@ -18,9 +18,11 @@ The paper's RPE per strategy (:func:`evaluate_strategies`, ``osdar-ar evaluate``
 For every strategy, camera and landmark: the 3D calibration point is the point of the cloud
 registered with THAT strategy's poses whose projections are nearest to the clicks
 (:func:`~worker.preparation.calibration_point.calibration_point_from_clicks`, the paper's
-rule made robust over frames); RPE_i is the distance between the click of frame i and that
-point projected with frame i's pose at the camera's own timestamp; J_i = |RPE_{i+1} - RPE_i|
-between consecutive frame counters. Clicks come from a file (real data, formats in
+rule made robust over frames; the cloud is every frame's points, searched at full density
+near the click rays and around the point found, not only the voxel-filtered registered
+cloud of every ``frame_step``-th frame); RPE_i is the distance between the click of
+frame i and that point projected with frame i's pose at the camera's own timestamp;
+J_i = |RPE_{i+1} - RPE_i| between consecutive frame counters. Clicks come from a file (real data, formats in
 ``calibration_point.py`` / the README) or, on synthetic sequences, from the ground truth:
 every landmark's true full-resolution pixel (optionally with Gaussian click noise) in the
 frames where it is ``near``-``far`` m in front of the camera (default 30-80 m). Pixels are
@@ -72,6 +74,7 @@ from worker.preparation.calibration_point import (
     calibration_point_from_clicks,
     camera_at_resolution,
     click_resolution,
+    points_near_rays,
 )
 from worker.preparation.config import CalibrationConfig
 from worker.preparation.frame_clouds import FrameClouds
@@ -384,12 +387,15 @@ def rpe_from_clicks(
     search_radius_px: float = EVAL_SEARCH_RADIUS_PX,
     dense: Any = None,
     dense_radius_m: float = 0.0,
+    dense_rays: Any = None,
 ) -> dict[str, dict[str, Any]]:
     """RPE per frame of one landmark in each clicked camera (the paper's definition).
 
     Per camera the calibration point is chosen from that camera's clicks alone, refined
     among the full-density points ``dense(centre, radius)`` within ``dense_radius_m`` when
-    given (:func:`~worker.preparation.calibration_point.calibration_point_from_clicks`). Returns
+    given, and found among every frame's full-density points near the click rays too when
+    ``dense_rays`` is given
+    (:func:`~worker.preparation.calibration_point.calibration_point_from_clicks`). Returns
     {camera: {"xyz", "frames", "rpe", "click", "projected", "warnings"}} (pixels at the
     clicks' resolution; frames whose projection fails are left out).
     """
@@ -401,8 +407,9 @@ def rpe_from_clicks(
             continue
         one = Clicks(clicks.landmark, {cam_name: frames}, dict(clicks.resolution))
         cal = calibration_point_from_clicks(
-            xyz_world, track, {cam_name: cameras[cam_name]}, camera_times, one, cfg, dense
-        )
+            xyz_world, track, {cam_name: cameras[cam_name]}, camera_times, one, cfg, dense,
+            dense_rays,
+        )  # fmt: skip
         obs = [o for o in cal.observations if o["residual_px"] is not None]
         out[cam_name] = {
             "xyz": None if cal.xyz is None else [float(v) for v in cal.xyz],
@@ -520,6 +527,19 @@ def _frame_clouds(seq: Any) -> Any:
     return FrameClouds(seq, max_range=DENSE_MAX_RANGE_M)
 
 
+def _rays(clouds: Any, track: Any) -> Any:
+    """The calibration point's ``dense_rays``: every frame's full-density points near the
+    click rays, registered with ``track`` at the frame's lidar timestamp."""
+    frames = clouds.frames
+    T_all = track.interpolate(np.array([clouds.frame_times[f] for f in frames]))
+
+    def frame_points() -> Any:
+        for f, T in zip(frames, T_all, strict=True):
+            yield T, clouds.get(f).p_base32
+
+    return points_near_rays(frame_points)
+
+
 def _at(truth: Any, track: Any) -> np.ndarray:
     return truth.interpolate(track.timestamps, max_extrapolation_s=0.05)
 
@@ -589,14 +609,16 @@ def _strategy_rpe(
     clicks: list[Any],
     dense: Any,
     dense_radius_m: float,
+    dense_rays: Any = None,
 ) -> tuple[dict[str, dict[str, Any]], list[dict[str, Any]]]:
     """One strategy's RPE series: {camera: {landmark: series}} and the per-frame rows."""
     per_cam: dict[str, dict[str, Any]] = {c: {} for c in cams}
     rows: list[dict[str, Any]] = []
     for cl in clicks:
         for cam_name, s in rpe_from_clicks(
-            xyz, track, cams, times, cl, dense=dense, dense_radius_m=dense_radius_m
-        ).items():
+            xyz, track, cams, times, cl, dense=dense, dense_radius_m=dense_radius_m,
+            dense_rays=dense_rays,
+        ).items():  # fmt: skip
             per_cam[cam_name][cl.landmark] = s
             rows += _frame_rows(strategy, cam_name, cl.landmark, s)
     return per_cam, rows
@@ -664,9 +686,11 @@ def evaluate_strategies(
     rows: list[dict[str, Any]] = []
     clouds = _frame_clouds(seq) if dense_radius_m > 0 else None
     for strategy, (track, xyz) in tracks.items():
-        dense = None if clouds is None else dense_points(seq, track, clouds)
+        dense = rays = None
+        if clouds is not None:
+            dense, rays = dense_points(seq, track, clouds), _rays(clouds, track)
         per_cam, strategy_rows = _strategy_rpe(
-            strategy, track, xyz, cams, times, clicks, dense, dense_radius_m
+            strategy, track, xyz, cams, times, clicks, dense, dense_radius_m, rays
         )
         rows += strategy_rows
         for cam_name, lms in per_cam.items():

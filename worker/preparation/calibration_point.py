@@ -19,6 +19,14 @@ points of all the frames within ``dense_radius_m`` of it, at full density (the s
 still a point of the lidar cloud, as in the paper). On the synthetic fire_site this takes
 the RPE with true poses from 4.0 to 0.9 px on rgb_highres_center.
 
+A small landmark far away (a pole top at 60-75 m in a 0.3-density cloud) may be hit by a
+beam in only a few frames, none of them in the registered cloud: its nearest point there is
+on another surface metres away, and refining around that one cannot reach the landmark
+(station, 60 frames: a point 13 m off, 50 px with the true poses). With ``dense_rays``
+every frame's full-density points near the click rays of the two outermost seed views
+compete from the start (:func:`points_near_rays`; the same cloud, read at full density):
+there 50 -> 14 px with the true poses; what is left is where the beams hit the pole.
+
 Without clicks, an automatic mode proposes pole tops (the highest point of each pole
 cluster, :mod:`scene_elements`) ranked by the number of (camera, frame) views they are in.
 
@@ -55,7 +63,7 @@ import hashlib
 import json
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -355,6 +363,54 @@ def _cone_candidates(xyz: F64, view: _View, radius_px: float) -> NDArray[np.int6
     return idx[np.einsum("ij,ij->i", d, d) <= tol * tol]
 
 
+def _seed_rays(views: list[_View]) -> tuple[F64, F64]:
+    """(k, 3) world origins (camera centres) and (k, 3) unit world directions of the click
+    rays of ``views`` (views whose click cannot be undistorted are left out)."""
+    origins, dirs = [], []
+    for v in views:
+        xy, ok = v.cam.undistort(v.cam.pixel_to_normalized(v.click[None]))
+        if not ok[0]:
+            continue
+        T_world_opt = v.T_world_base @ v.cam.T_base_opt
+        d = T_world_opt[:3, :3] @ np.array([xy[0, 0], xy[0, 1], 1.0])
+        origins.append(T_world_opt[:3, 3])
+        dirs.append(d / np.linalg.norm(d))
+    return np.asarray(origins, dtype=np.float64).reshape(-1, 3), np.asarray(
+        dirs, dtype=np.float64
+    ).reshape(-1, 3)
+
+
+def points_near_rays(
+    frame_points: Callable[[], Iterable[tuple[F64, F64]]],
+) -> Callable[[F64, F64, float], F64]:
+    """``dense_rays`` for :func:`calibration_point_from_clicks`: every frame's points (at
+    full density) within an angle of any of the given rays.
+
+    frame_points : yields per frame (T_world_base (4, 4), p_base (n, 3)): the frame's
+        points and its pose at its lidar timestamp.
+    The returned function takes (k, 3) world origins, (k, 3) unit world directions and a
+    half-angle tolerance (rad) and returns the (m, 3) world points within it, at least
+    0.5 m in front of a ray's origin.
+    """
+
+    def near(origins: F64, dirs: F64, tol: float) -> F64:
+        out = []
+        for T, p_base in frame_points():
+            R, t = T[:3, :3], T[:3, 3]
+            p32 = np.asarray(p_base, dtype=np.float32)  # a selection: float32 is enough
+            keep = np.zeros(len(p32), dtype=bool)
+            for o, d in zip(origins, dirs, strict=True):
+                v = p32 - ((o - t) @ R).astype(np.float32)
+                along = v @ (d @ R).astype(np.float32)
+                perp2 = np.einsum("ij,ij->i", v, v) - along * along
+                keep |= (along > 0.5) & (perp2 <= (tol * along) ** 2)
+            if np.any(keep):
+                out.append(np.asarray(p_base[keep], dtype=np.float64) @ R.T + t)
+        return np.concatenate(out) if out else np.zeros((0, 3))
+
+    return near
+
+
 def _best_point(p: F64, views: list[_View], r: float) -> tuple[int, F64]:
     """Index of the point of ``p`` (m, 3) minimising the truncated squared pixel distance
     summed over the views, and its projections (k views, 2) (NaN where it fails)."""
@@ -377,6 +433,7 @@ def calibration_point_from_clicks(
     clicks: Clicks,
     cfg: CalibrationConfig,
     dense: Callable[[F64, float], F64] | None = None,
+    dense_rays: Callable[[F64, F64, float], F64] | None = None,
 ) -> CalibrationPoint:
     """The cloud point whose projections are nearest to the clicks (module docstring).
 
@@ -393,6 +450,12 @@ def calibration_point_from_clicks(
         When given, the point chosen in ``xyz_world`` is refined among them: the same
         truncated cost, over a cloud dense enough that a point lies near the landmark
         itself (``point_index`` then stays the coarse one, ``refined`` is set).
+    dense_rays : ``dense_rays(origins (k, 3), directions (k, 3), tol rad) -> (m, 3)``
+        world points of every frame at full density near the seed views' click rays
+        (:func:`points_near_rays`). When given they compete with the registered cloud's
+        points from the start: a small landmark that only a few frames' beams hit, none
+        of them kept in the registered cloud (every ``frame_step``-th frame, one point per
+        voxel), is still found, rather than a point of another surface near the ray.
 
     Raises
     ------
@@ -409,15 +472,25 @@ def calibration_point_from_clicks(
         return out
     r = float(cfg.search_radius_px)
     seeds = np.unique(np.linspace(0, len(views) - 1, min(cfg.seed_frames, len(views))).round())
-    cand = np.unique(
-        np.concatenate([_cone_candidates(xyz, views[int(k)], r) for k in seeds.astype(int)])
-    )
-    if len(cand) == 0:
+    seed_views = [views[int(k)] for k in seeds.astype(int)]
+    cand = np.unique(np.concatenate([_cone_candidates(xyz, v, r) for v in seed_views]))
+    extra = np.zeros((0, 3))
+    if dense_rays is not None:  # the two seed views farthest apart: each ray's cone holds it
+        origins, dirs = _seed_rays(
+            [seed_views[0], seed_views[-1]] if len(seed_views) > 1 else seed_views
+        )
+        tol = 2.0 * r / min(min(v.cam.fx, v.cam.fy) for v in seed_views)
+        if len(origins):
+            extra = np.asarray(dense_rays(origins, dirs, tol), dtype=np.float64).reshape(-1, 3)
+    if len(cand) == 0 and len(extra) == 0:
         out.warnings.append(f"no cloud point projects within {r:.0f} px of the seed clicks")
         return out
-    best, uv_best = _best_point(xyz[cand], views, r)
-    out.point_index = int(cand[best])
-    out.xyz = xyz[cand[best]].copy()
+    best, uv_best = _best_point(np.concatenate([xyz[cand], extra]), views, r)
+    if best < len(cand):
+        out.point_index = int(cand[best])
+        out.xyz = xyz[cand[best]].copy()
+    else:
+        out.xyz, out.refined = extra[best - len(cand)].copy(), True
     if dense is not None and cfg.dense_radius_m > 0:
         near = np.asarray(dense(out.xyz, float(cfg.dense_radius_m)), dtype=np.float64)
         if len(near):
