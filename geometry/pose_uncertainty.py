@@ -11,7 +11,8 @@ An object placed in the map near frame ``r`` and seen from frame ``i`` is off by
 the relative pose of the two frames is off (a shift of the whole trajectory and map
 together moves neither): :func:`anchor_bound_px` propagates the 12 x 12 covariance of
 the two frames' perturbations to the anchor's pixel and returns the radius that holds
-the pixel error with ``coverage`` probability (a 2-D Gaussian along its major axis).
+the pixel error with ``coverage`` probability (the exact quantile of a 2-D Gaussian
+error's length, :func:`gaussian_radius_quantile`).
 """
 
 from __future__ import annotations
@@ -23,10 +24,11 @@ from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import brentq
 from scipy.sparse import csc_matrix, diags
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2
+from scipy.stats import chi2, norm
 
 F64 = NDArray[np.float64]
 
@@ -164,8 +166,48 @@ def anchor_pixel_jacobian(
 
 def anchor_bound_px(J: F64, cov: F64, coverage: float = 0.9) -> float:
     """Radius (px) holding the anchor's pixel error with probability ``coverage``: the
-    (2, 12) Jacobian ``J`` propagates the (12, 12) covariance; the bound is conservative,
-    along the major axis of the 2-D error ellipse."""
+    (2, 12) Jacobian ``J`` propagates the (12, 12) covariance to the pixel's (2, 2) one,
+    and the radius is the ``coverage`` quantile of the length of a 2-D Gaussian error with
+    that covariance (:func:`gaussian_radius_quantile`)."""
     S = J @ cov @ J.T
-    lam = float(np.max(np.linalg.eigvalsh(0.5 * (S + S.T))))
-    return float(np.sqrt(chi2.ppf(coverage, 2) * max(lam, 0.0)))
+    lam = np.linalg.eigvalsh(0.5 * (S + S.T))
+    return gaussian_radius_quantile(float(lam[1]), float(lam[0]), coverage)
+
+
+#: Gauss-Legendre nodes of the radius distribution's integral (exact to ~1e-10 here).
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(48)
+
+
+def _radius_cdf(r: float, s1: float, s2: float) -> float:
+    """P(||e|| <= r) for e ~ N(0, diag(s1^2, s2^2)), s1 >= s2 > 0: the integral over the
+    major axis' coordinate x = r sin(t) of its density times P(|e2| <= r cos(t)) (smooth
+    in t up to the ends, where the integrand in x has a kink)."""
+    t = 0.5 * np.pi * _GL_X  # nodes on [-pi/2, pi/2]
+    x, y = r * np.sin(t), r * np.cos(t)
+    f = norm.pdf(x / s1) / s1 * (2.0 * norm.cdf(y / s2) - 1.0) * y
+    return float(0.5 * np.pi * np.sum(_GL_W * f))
+
+
+def gaussian_radius_quantile(lam_major: float, lam_minor: float, coverage: float = 0.9) -> float:
+    """The radius holding a zero-mean 2-D Gaussian error with variances ``lam_major`` >=
+    ``lam_minor`` along its principal axes (px^2) with probability ``coverage``.
+
+    It runs from the 1-D quantile (a flat ellipse: 1.645 sigma at 90 %) to the circular
+    one (2.146 sigma at 90 %); the major axis' circular radius, which over-states a flat
+    ellipse's by 1.3x, is its upper end.
+    """
+    lam1, lam2 = max(lam_major, 0.0), max(min(lam_minor, lam_major), 0.0)
+    if lam1 <= 0.0:
+        return 0.0
+    s1 = float(np.sqrt(lam1))
+    lo = s1 * float(np.sqrt(chi2.ppf(coverage, 1)))  # the major axis' error alone
+    hi = s1 * float(np.sqrt(chi2.ppf(coverage, 2)))  # a circle of the major axis' sigma
+    s2 = float(np.sqrt(lam2))
+    if s2 < 1e-6 * s1:
+        return lo
+    f_lo, f_hi = _radius_cdf(lo, s1, s2) - coverage, _radius_cdf(hi, s1, s2) - coverage
+    if f_hi <= 0.0:  # a circle (to rounding)
+        return hi
+    if f_lo >= 0.0:
+        return lo
+    return float(brentq(lambda r: _radius_cdf(r, s1, s2) - coverage, lo, hi, xtol=1e-9 * hi))

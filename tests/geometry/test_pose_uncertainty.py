@@ -4,12 +4,14 @@ coverage by Monte Carlo."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from geometry.pose_uncertainty import (
     PoseInformation,
     _perturbed,
     anchor_bound_px,
     anchor_pixel_jacobian,
+    gaussian_radius_quantile,
 )
 
 F = 5000.0  # focal length (px) of the test camera, looking along the base's x axis
@@ -79,5 +81,21 @@ def test_the_bound_covers_90_percent_of_sampled_errors() -> None:
         p = (_perturbed(T_r, d[:6]) @ q)[:3]
         errs.append(np.linalg.norm(_project(p, _perturbed(T_i, d[6:])) - base))
     inside = float(np.mean(np.array(errs) <= bound))
-    # conservative along the major axis: at least 90 %, and not absurdly loose
-    assert 0.9 <= inside <= 0.995, (inside, bound)
+    # the exact 90 % radius of the propagated Gaussian: 90 % within 3 binomial sigmas
+    # (0.0067 at 2000 samples), neither loose nor tight
+    assert abs(inside - 0.9) <= 0.02, (inside, bound)
+
+
+def test_radius_quantile_matches_the_closed_forms_and_sampling() -> None:
+    # a circle: r = sigma sqrt(-2 ln(1 - q)); a flat ellipse: the 1-D two-sided quantile
+    assert gaussian_radius_quantile(4.0, 4.0, 0.9) == pytest.approx(
+        2.0 * np.sqrt(-2.0 * np.log(0.1)), rel=1e-6
+    )
+    assert gaussian_radius_quantile(4.0, 0.0, 0.9) == pytest.approx(2.0 * 1.6448536, rel=1e-6)
+    assert gaussian_radius_quantile(0.0, 0.0, 0.9) == 0.0
+    rng = np.random.default_rng(7)
+    for lam1, lam2, q in ((9.0, 1.0, 0.9), (1.0, 0.02, 0.5), (2.0, 1.5, 0.95)):
+        z = rng.standard_normal((400_000, 2))
+        d = np.sqrt(lam1 * z[:, 0] ** 2 + lam2 * z[:, 1] ** 2)
+        got = gaussian_radius_quantile(lam1, lam2, q)
+        assert np.mean(d <= got) == pytest.approx(q, abs=0.002), (lam1, lam2, q)
