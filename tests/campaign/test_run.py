@@ -15,7 +15,7 @@ import yaml
 from PIL import Image
 
 from worker.campaign.manifest import csv_columns, flatten_row
-from worker.campaign.run import CampaignRunError, load_campaign
+from worker.campaign.run import CampaignRunError, combined_gauge, load_campaign
 from worker.cli import main
 
 pytestmark = pytest.mark.gl
@@ -317,3 +317,20 @@ def test_several_objects_and_a_walker_in_one_variant(base: Path, seq: Path, cach
     }
     assert speeds == {0.0, 1.2}
     assert Image.open(out / "contact_sheet.png").size[0] > 100
+
+
+def test_the_gauge_over_several_objects_intrudes_when_any_does() -> None:
+    a = {
+        "intrusion_frames": 0,
+        "annotated_frames": 6,
+        "lateral_distance_m": 0.4,
+        "track_distance_m": [20.0, 25.0],
+        "outline": {"margin_m": 0.2},
+    }
+    b = {"intrusion_frames": 4, "annotated_frames": 5, "lateral_distance_m": -1.1,
+         "track_distance_m": [31.0, 35.5], "outline": {"margin_m": 0.2}}  # fmt: skip
+    g = combined_gauge([a, None, b])
+    assert g is not None
+    assert g["intrusion_frames"] == 4 and g["objects_intruding"] == 1
+    assert g["lateral_distance_m"] == -1.1 and g["track_distance_m"] == [20.0, 35.5]
+    assert combined_gauge([a]) == a and combined_gauge([None, None]) is None
