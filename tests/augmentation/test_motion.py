@@ -22,6 +22,7 @@ from worker.augmentation.finish import finish_augmentation
 from worker.augmentation.frame import augment_frames
 from worker.augmentation.motion import path_position
 from worker.augmentation.plan import plan_augmentation
+from worker.augmentation.records import dump_chunk, dump_plan, load_chunk, load_plan
 from worker.augmentation.spec import AugmentSpec, MotionModel, ObjectSource, SceneObject
 from worker.evaluation.object_error import truth_prepared
 from worker.osdar.pcd import read_pcd
@@ -179,3 +180,21 @@ def test_a_job_spec_with_motion_parses() -> None:
     (obj,) = spec.scene_objects
     assert obj.motion is not None and obj.motion.mode == "world" and obj.motion.speed_mps == 0.8
     assert json.loads(spec.model_dump_json())["motion"]["path"] == [[10.0, 0.0], [30.0, 5.0]]
+
+
+def test_a_moving_plan_survives_its_record(walk) -> None:
+    """The plan a pool's workers read back: poses per stream and frame, walk-cycle phases
+    and velocities come back exactly, and a frame augmented from it is the same."""
+    _, _, plan, chunk, _ = walk
+    back = load_plan(dump_plan(plan))
+    (w0,), (w1,) = plan.objects, back.objects
+    assert w1.moving and w1.phases is not None
+    for st in w0.poses:
+        for f in plan.frames:
+            assert np.array_equal(w1.pose(st, f), w0.pose(st, f))
+            assert w1.phases[st][f] == w0.phases[st][f]
+    assert all(np.array_equal(w1.velocity(f), w0.velocity(f)) for f in plan.frames)
+    again = load_chunk(dump_chunk(chunk))
+    assert [r.annotation.cuboid for r in again.frames] == [
+        r.annotation.cuboid for r in chunk.frames
+    ]
