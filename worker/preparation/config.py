@@ -61,6 +61,13 @@ class LocalizationConfig(_Section):
     options: dict[str, Any] = Field(default_factory=dict)
 
 
+class LidarAlignmentConfig(_Section):
+    """Per-lidar corrections of the merged clouds (lidar_alignment.py)."""
+
+    enabled: bool = True  # estimate them and apply the trusted ones before odometry
+    frames: int = Field(8, ge=2)  # frames they are estimated on (alternate ones: 2 halves)
+
+
 class PlaneConfig(_Section):
     """Ground and platform planes near the track (RANSAC, open3d ``segment_plane``)."""
 
@@ -117,6 +124,7 @@ class PrepareConfig(_Section):
     registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
     rails: RailsConfig = Field(default_factory=RailsConfig)
     localization: LocalizationConfig = Field(default_factory=LocalizationConfig)
+    lidar_alignment: LidarAlignmentConfig = Field(default_factory=LidarAlignmentConfig)
     planes: PlaneConfig = Field(default_factory=PlaneConfig)
     poles: PoleConfig = Field(default_factory=PoleConfig)
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)

@@ -5,6 +5,10 @@ final registration with the chosen poses). Reading and parsing the PCDs dominate
 KISS-ICP itself, so a :class:`FrameClouds` reads each file once (``Sequence.pcd`` drops the
 non-finite points), drops points beyond ``max_range``, optionally thins it with a voxel
 filter in the base frame, and serves it to every consumer.
+
+Per-lidar corrections (:mod:`worker.preparation.lidar_alignment`, the merge's calibration
+errors measured between the lidars) are applied here, once, when a frame is read: set them
+with :meth:`FrameClouds.set_corrections` before the stages that should see them.
 """
 
 from __future__ import annotations
@@ -63,6 +67,14 @@ class FrameClouds:
             int(f): float(t) for f, t in zip(seq.frame_indices, ts, strict=True) if np.isfinite(t)
         }
         self._cache: dict[int, FrameCloud] = {}
+        #: sensor_index -> (4, 4) correction applied to that sensor's base points
+        self.corrections: dict[int, NDArray[np.float64]] = {}
+
+    def set_corrections(self, corrections: dict[int, NDArray[np.float64]]) -> None:
+        """Apply ``corrections`` (sensor_index -> (4, 4), ``p' = R p + t`` in the base
+        frame) to every frame served from now on; frames read before are read again."""
+        self.corrections = {int(k): np.asarray(v, dtype=np.float64) for k, v in corrections.items()}
+        self._cache.clear()
 
     @property
     def frames(self) -> list[int]:
@@ -83,6 +95,11 @@ class FrameClouds:
         si = np.zeros(n, np.uint8) if si is None else np.asarray(si).astype(np.uint8, copy=False)
         it = f.get("intensity")
         it = np.zeros(n, np.float32) if it is None else np.asarray(it, dtype=np.float32)
+        for s, T in self.corrections.items():
+            sel = si == s
+            if np.any(sel):
+                q = p[sel].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+                p[sel] = q.astype(np.float32)
         r2 = np.einsum("ij,ij->i", p, p)
         if float(r2.max(initial=0.0)) > self.max_range**2:
             keep = r2 <= self.max_range**2

@@ -4,6 +4,8 @@ The recipe (:func:`run_preparation`), one line per stage:
 
 1. open the sequence, check the clicks against its cameras;
 2. INS poses (world frame = ENU at the first INS record, nominal INS-to-lidar assumption);
+   then the per-lidar corrections of the merged clouds (:mod:`.lidar_alignment`), applied
+   to every cloud the stages below read;
 3. lidar odometry: ONE KISS-ICP run, memoised for every strategy that needs it;
 4. pre-registration: every ``pre_frame_step``-th cloud with the odometry poses anchored on
    all INS positions (or the INS poses), coarse voxels - enough to find the rails;
@@ -58,6 +60,7 @@ from worker.preparation.calibration_point import (
 )
 from worker.preparation.config import PrepareConfig
 from worker.preparation.frame_clouds import FrameClouds
+from worker.preparation.lidar_alignment import LidarAlignment, estimate_alignment
 from worker.preparation.localization import odometry_track, run_strategy
 from worker.preparation.localization.anchor import anchored_to_ins
 from worker.preparation.localization.auto import crispness, judge
@@ -76,6 +79,7 @@ Progress = Callable[[str, int, int], None]
 STAGES = (
     "open",
     "ins",
+    "lidar_alignment",
     "odometry",
     "pre_registration",
     "pre_tracks",
@@ -196,6 +200,7 @@ class LocalizationSetup:
     odo_health: Health
     pre_cloud: RegisteredCloud
     pre_tracks: Any
+    alignment: LidarAlignment | None = None  # None: lidar alignment off
 
 
 def localization_setup(
@@ -220,6 +225,12 @@ def localization_setup(
             seq, max_range=max(FRAME_CLOUD_RANGE_M, reg.max_range), voxel_size=FRAME_CLOUD_VOXEL_M
         )
         inp.options["_frame_clouds"] = clouds
+
+    alignment = None
+    if config.lidar_alignment.enabled:
+        with stage("lidar_alignment"):
+            alignment = estimate_alignment(clouds, inp.frames, config.lidar_alignment.frames)
+            clouds.set_corrections(alignment.corrections())
 
     with stage("odometry"):
         odo_track, odo_health = odometry_track(inp)
@@ -246,7 +257,7 @@ def localization_setup(
         # the strategies need the ego track only; the neighbours come from the final cloud
         pre_tracks = _find_tracks(find_tracks, pre_cloud, pre_track, seq, config, ego_only=True)
         inp.ego = pre_tracks.ego
-    return LocalizationSetup(inp, clouds, odo_track, odo_health, pre_cloud, pre_tracks)
+    return LocalizationSetup(inp, clouds, odo_track, odo_health, pre_cloud, pre_tracks, alignment)
 
 
 def run_preparation(
@@ -394,6 +405,7 @@ def _collect_warnings(
     odo_ws = setup.odo_health.warnings
     out = []
     for source, ws in (
+        ("lidar_alignment", [] if setup.alignment is None else setup.alignment.warnings),
         ("odometry", odo_ws),
         ("strategy", [w for w in result.health.warnings if w not in odo_ws]),
         ("tracks", final.tracks.warnings),
@@ -503,6 +515,7 @@ def _summary(
             "strategy_seconds": result.seconds,
             "strategy_extras": result.extras,
             "odometry_health": odo_health.to_json(),
+            "lidar_alignment": None if setup.alignment is None else setup.alignment.summary(),
             "pre_tracks": _tracks_summary(pre_tracks),
             "tracks": _tracks_summary(tracks),
             "cloud": {

@@ -1,0 +1,588 @@
+"""Preparation step ``lidar_alignment``: per-lidar corrections of the merged clouds.
+
+OSDaR23 publishes one merged cloud per frame from six lidars (``sensor_index`` 0-5), not
+the lidars' poses, so the merge's calibration errors (a few hundredths of a degree, a
+centimetre or two per lidar) cannot be undone from a file. They can be measured where two
+lidars see the same surfaces: this step estimates, for every sensor, a rigid correction
+``T_ref_sensor`` (base frame, applied as ``p' = R p + t`` to that sensor's base points)
+that brings its points onto a reference sensor's, and hands the trusted ones to the
+:class:`~worker.preparation.frame_clouds.FrameClouds` every later stage reads from.
+
+The method, and why:
+
+- **Same frame, no poses.** Each frame's sensors were motion-compensated into the same base
+  frame at the same lidar timestamp, so a sensor's points are compared with the reference
+  sensor's points *of the same frame*: no pose (INS or odometry, themselves affected by
+  the errors being measured) and no per-sensor scan timing enters. Several frames spread
+  over the sequence are stacked into one least-squares problem (one unknown per sensor).
+- **Reference**: the sensor whose points cover the most azimuth (then the most points):
+  on OSDaR23 the 360-degree spinner, the one lidar every other overlaps. Only relative
+  errors are observable from the clouds; the corrected cloud is in the reference's frame.
+- **Overlap that exists**: a narrow long-range sensor overlaps the spinner far ahead,
+  where the spinner's rings are a metre apart; a short-range side sensor overlaps it on
+  the ground and nearby structures. So every source point is matched to its nearest
+  reference point within a gate growing with range (``GATE_M`` + ``GATE_PER_M`` x range)
+  and compared with the plane there (point-to-plane); the plane's normal comes from the
+  whole frame's merged points around the match (the reference's rings alone are lines)
+  and is used only where the neighbourhood is planar. A Cauchy kernel down-weights
+  matches on other surfaces.
+- **Degeneracy**: directions the overlap does not constrain (a side lidar that sees only
+  the ground and walls along the track cannot tell where it sits along the track) are
+  left at zero: the least squares is solved in the well-informed eigen-directions only
+  (:func:`_observed`), and the summary says how many directions were solved.
+- **Trust**: a sensor's correction is applied only if it has ``MIN_INLIERS`` planar
+  matches and the two halves of the frames (alternate frames) agree to within
+  ``SPLIT_ROT_DEG`` / ``SPLIT_TRANS_M`` (the half-split difference is twice the
+  uncertainty of the whole); a correction larger than ``MAX_ROT_DEG`` / ``MAX_TRANS_M`` is
+  not the small merge error this step is for and is not applied either. Otherwise the
+  sensor keeps the identity and the reason goes into the health warnings.
+
+Nothing here assumes a mounting position, a beam pattern or a sensor model: only the
+``sensor_index`` of each point.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from geometry.voxels import voxel_keep
+from worker.preparation.frame_clouds import FrameClouds
+
+F64 = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+#: Frames used (spread evenly over the sequence).
+FRAMES = 8
+#: Each sensor's points are matched against on this voxel grid (m); the points matched
+#: from (sources) are thinned to SOURCE_VOXEL_M (m) and at most SOURCE_MAX_POINTS.
+MAP_VOXEL_M = 0.1
+SOURCE_VOXEL_M = 0.2
+SOURCE_MAX_POINTS = 2000
+#: Normals: from a point's own sensor's points, this many neighbours,
+#: which must lie within NORMAL_REACH_M + NORMAL_REACH_PER_M x range of the match.
+NORMAL_KNN = 16
+NORMAL_REACH_M = 1.0
+NORMAL_REACH_PER_M = 0.03
+#: Planar neighbourhood: RMS thickness below THICKNESS_M (m: the lidars' range noise),
+#: smallest / middle eigenvalue below FLATNESS, middle / largest above NOT_A_LINE.
+THICKNESS_M = 0.03
+#: ... and at least this wide (m, standard deviation across its longer axis): a pole, a
+#: rail or a sleeper is curved or edged at the scale of the gate.
+MIN_WIDTH_M = 0.1
+FLATNESS = 0.1
+#: A match counts only on its patch: within this many standard deviations of the
+#: neighbourhood along each in-plane axis, plus a margin (m).
+PATCH_SIGMAS = 2.0
+PATCH_MARGIN_M = 0.05
+PLANE_COLS = 12
+NOT_A_LINE = 0.05
+#: Match gate (m): nearest reference point within GATE_M + GATE_PER_M x range.
+GATE_M = 0.2
+GATE_PER_M = 0.003
+GATE_FAR_M = GATE_M + GATE_PER_M * 100.0  # the gate at the frame clouds' 100 m
+#: Cauchy kernel scale of the point-to-plane residual (m): lidar noise 2-3 cm plus the
+#: plane's curvature over a gate.
+KERNEL_M = 0.05
+#: Gauss-Newton iterations (stops earlier when the step is below 1e-5 rad / 1e-4 m).
+ITERATIONS = 3
+#: Unconstrained directions (see :func:`_observed`): lever (m) that makes rotations
+#: comparable with translations, and the information (matches of unit normal) below which
+#: a direction is left at zero.
+LEVER_M = 10.0
+DEGENERATE_POINTS = 50.0
+#: Trust: planar matches over all frames, per half; half-split agreement (deg, m);
+#: largest correction that is a merge error (deg, m).
+MIN_INLIERS = 400
+MIN_INLIERS_HALF = 150
+SPLIT_ROT_DEG = 0.02
+SPLIT_TRANS_M = 0.01
+MAX_ROT_DEG = 0.5
+MAX_TRANS_M = 0.1
+
+
+@dataclass
+class SensorCorrection:
+    """One sensor's estimate.
+
+    T_ref_sensor : (4, 4) the correction (base frame): ``p' = R p + t`` for its points.
+    applied : whether it passed the trust checks (else the sensor keeps the identity).
+    reason : why it was not applied ("" when applied).
+    inliers : planar matches at the solution (all frames); halves : the same per half.
+    split_rot_deg, split_trans_m : difference between the two halves' estimates.
+    std_rot_deg, std_trans_m : largest per-axis standard deviation from the covariance
+        (residual scatter x the inverse information, prior included; optimistic, the
+        points of one surface are not independent).
+    rms_before_m, rms_after_m : RMS point-to-plane residual of the inliers (Cauchy
+        weighted) at identity and at the solution.
+    observed : directions of the 6 the matches constrain (the others are left at zero).
+    """
+
+    sensor_index: int
+    T_ref_sensor: F64
+    applied: bool
+    reason: str
+    inliers: int
+    halves: tuple[int, int]
+    split_rot_deg: float
+    split_trans_m: float
+    std_rot_deg: float
+    std_trans_m: float
+    rms_before_m: float
+    rms_after_m: float
+    observed: int = 6
+
+    @property
+    def rotation_deg(self) -> F64:
+        """(3,) rotation vector of the correction in degrees."""
+        return np.degrees(Rotation.from_matrix(self.T_ref_sensor[:3, :3]).as_rotvec())
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "sensor_index": self.sensor_index,
+            "applied": self.applied,
+            "reason": self.reason,
+            "rotation_deg": [float(v) for v in self.rotation_deg],
+            "translation_m": [float(v) for v in self.T_ref_sensor[:3, 3]],
+            "T_ref_sensor": self.T_ref_sensor.tolist(),
+            "inliers": self.inliers,
+            "inliers_halves": list(self.halves),
+            "split_rot_deg": self.split_rot_deg,
+            "split_trans_m": self.split_trans_m,
+            "std_rot_deg": self.std_rot_deg,
+            "std_trans_m": self.std_trans_m,
+            "rms_before_m": self.rms_before_m,
+            "rms_after_m": self.rms_after_m,
+            "observed_directions": self.observed,
+        }
+
+
+@dataclass
+class LidarAlignment:
+    """The step's result: the reference sensor, every other sensor's estimate, warnings."""
+
+    reference: int | None
+    sensors: dict[int, SensorCorrection] = field(default_factory=dict)
+    frames: list[int] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def corrections(self) -> dict[int, F64]:
+        """sensor_index -> (4, 4) correction, for the applied ones only."""
+        return {s: c.T_ref_sensor for s, c in self.sensors.items() if c.applied}
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "reference": self.reference,
+            "frames": list(self.frames),
+            "sensors": {str(s): c.to_json() for s, c in sorted(self.sensors.items())},
+            "applied": sorted(self.corrections()),
+            "warnings": list(self.warnings),
+            "seconds": self.seconds,
+            "seconds_per_frame": self.seconds / max(len(self.frames), 1),
+        }
+
+
+# ------------------------------------------------------------------------- the frames
+@dataclass
+class _Sensor:
+    """One sensor's points in one frame: all of them (KD-tree, normals from their own
+    neighbours, computed on demand) and the subset that is matched against others."""
+
+    points: F64
+    tree: Any
+    planes: F64  # (m, PLANE_COLS) see _planes; NaN: not computed yet
+    source: F64
+
+    def planes_at(self, idx: NDArray[np.int64]) -> F64:
+        """(k, PLANE_COLS) the local planes at points ``idx`` (:func:`_planes`)."""
+        todo = np.unique(idx[np.isnan(self.planes[idx, 0])])
+        if len(todo):
+            self.planes[todo] = _planes(self.points[todo], self.points, self.tree)
+        return self.planes[idx]
+
+
+@dataclass
+class _Frame:
+    """One frame: every sensor's points, and per sensor the reference's points near it."""
+
+    ref: int
+    sensors: dict[int, _Sensor]
+    ref_near: dict[int, F64]
+
+
+def _planes(q: F64, support: F64, tree: Any) -> F64:
+    """(k, PLANE_COLS) local planes at points ``q`` (k, 3) from their neighbours in
+    ``support``: unit normal, centroid, the two in-plane axes scaled by the neighbourhood's
+    standard deviation along them. A zero normal where the neighbourhood is too spread, a
+    line, or thicker than THICKNESS_M."""
+    k = min(NORMAL_KNN, len(support))
+    out = np.zeros((len(q), PLANE_COLS))
+    if k < 5:
+        return out
+    dist, nb = tree.query(q, k=k)
+    reach = NORMAL_REACH_M + NORMAL_REACH_PER_M * np.linalg.norm(q, axis=1)
+    ok = dist[:, -1] <= reach
+    if not np.any(ok):
+        return out
+    nbp = support[nb[ok]]  # (m, k, 3)
+    c = nbp.mean(axis=1)
+    d = nbp - c[:, None, :]
+    cov = np.einsum("mki,mkj->mij", d, d) / k
+    w, v = np.linalg.eigh(cov)  # ascending
+    w = np.clip(w, 0.0, None)
+    planar = (w[:, 0] < THICKNESS_M**2) & (w[:, 0] < FLATNESS * w[:, 1])
+    planar &= (w[:, 1] > NOT_A_LINE * w[:, 2]) & (w[:, 1] > MIN_WIDTH_M**2)
+    n = v[:, :, 0]
+    n[~planar] = 0.0
+    a1 = v[:, :, 1] * np.sqrt(w[:, 1:2])
+    a2 = v[:, :, 2] * np.sqrt(w[:, 2:3])
+    out[ok] = np.concatenate([n, c, a1, a2], axis=1)
+    return out
+
+
+def _inside(p: F64, c: F64, a1: F64, a2: F64) -> NDArray[np.bool_]:
+    """Whether points p (k, 3) lie on their local patch (centroid c, scaled in-plane axes
+    a1, a2, all (k, 3)): within PATCH_SIGMAS standard deviations (plus PATCH_MARGIN_M) along
+    both axes. A plane fitted to a patch says nothing about the surface beyond it."""
+    d = p - c
+    out = np.ones(len(p), bool)
+    for a in (a1, a2):
+        s = np.linalg.norm(a, axis=1)
+        along = np.abs(np.einsum("ij,ij->i", d, a)) / np.maximum(s, 1e-9)
+        out &= along <= PATCH_SIGMAS * s + PATCH_MARGIN_M
+    return out
+
+
+def _thin(p: F64, rng: np.random.Generator) -> F64:
+    """Voxel filter, then at most SOURCE_MAX_POINTS (random)."""
+    if len(p) == 0:
+        return p
+    p = p[voxel_keep(p, SOURCE_VOXEL_M)]
+    if len(p) > SOURCE_MAX_POINTS:
+        p = p[np.sort(rng.choice(len(p), SOURCE_MAX_POINTS, replace=False))]
+    return p
+
+
+def _gate(p: F64) -> F64:
+    return np.asarray(GATE_M + GATE_PER_M * np.linalg.norm(p, axis=1), dtype=np.float64)
+
+
+def _frame(
+    points: F64, sensor_index: NDArray[np.uint8], ref: int, rng: np.random.Generator
+) -> _Frame:
+    sensors = {}
+    for s in np.unique(sensor_index):
+        p = points[sensor_index == s]
+        p = p[voxel_keep(p, MAP_VOXEL_M)] if len(p) else p
+        if len(p) < NORMAL_KNN:
+            continue
+        sensors[int(s)] = _Sensor(
+            p, cKDTree(p), np.full((len(p), PLANE_COLS), np.nan), _thin(p, rng)
+        )
+    ref_near: dict[int, F64] = {}
+    r = sensors.get(ref)
+    if r is not None:
+        grid = r.points[voxel_keep(r.points, SOURCE_VOXEL_M)]
+        for s, sen in sensors.items():
+            if s == ref:
+                continue
+            # the reference's points near this sensor's (its box first: a narrow lidar
+            # covers a few percent of the spinner's cloud)
+            lo, hi = sen.points.min(axis=0) - GATE_FAR_M, sen.points.max(axis=0) + GATE_FAR_M
+            cand = grid[np.all((grid >= lo) & (grid <= hi), axis=1)]
+            dist, _ = sen.tree.query(cand, k=1, distance_upper_bound=GATE_FAR_M)
+            near = cand[dist <= _gate(cand)]
+            if len(near) > SOURCE_MAX_POINTS:
+                near = near[np.sort(rng.choice(len(near), SOURCE_MAX_POINTS, replace=False))]
+            ref_near[s] = near
+    return _Frame(ref, sensors, ref_near)
+
+
+def _pick_reference(frames: list[tuple[F64, NDArray[np.uint8]]]) -> int | None:
+    """The sensor covering the most 1-degree azimuth bins over the frames, then the one
+    with the most points; None with fewer than two sensors."""
+    bins: dict[int, set[int]] = {}
+    counts: dict[int, int] = {}
+    for p, si in frames:
+        az = np.floor(np.degrees(np.arctan2(p[:, 1], p[:, 0]))).astype(np.int64)
+        for s in np.unique(si):
+            sel = si == s
+            bins.setdefault(int(s), set()).update(np.unique(az[sel]).tolist())
+            counts[int(s)] = counts.get(int(s), 0) + int(sel.sum())
+    if len(counts) < 2:
+        return None
+    return max(counts, key=lambda s: (len(bins[s]), counts[s], -s))
+
+
+# ------------------------------------------------------------------------- the solver
+@dataclass
+class _Normal:
+    """Normal equations of one frame at a linearisation point."""
+
+    H: F64
+    g: F64
+    inliers: int
+    cost: float
+    weight: float
+
+
+def _point_to_plane(p: F64, q: F64, n: F64) -> tuple[F64, F64, float, float, int]:
+    """Normal equations of residuals ``n . (p - q)`` over a left update of the points p
+    (Jacobian ``[n, p x n]``), Cauchy weights; rows with a zero normal are left out."""
+    planar = np.any(n != 0.0, axis=1)
+    p, q, n = p[planar], q[planar], n[planar]
+    r = np.einsum("ij,ij->i", n, p - q)
+    w = 1.0 / (1.0 + (r / KERNEL_M) ** 2)
+    J = np.concatenate([n, np.cross(p, n)], axis=1)
+    Jw = J * w[:, None]
+    return Jw.T @ J, Jw.T @ r, float(np.sum(w * r * r)), float(np.sum(w)), len(r)
+
+
+def _linearise(fr: _Frame, sensor: int, T: F64) -> _Normal:
+    """Point-to-plane normal equations of ``sensor`` against the reference in one frame,
+    its points moved by T, matched both ways.
+
+    Unknown: the twist (v, w) of a left update ``p' = p + w x p + v`` of the sensor's moved
+    points. Each way takes the plane of the side it matches into: the sensor's points
+    against the reference's planes (where the reference is dense, near it) and the
+    reference's points against the sensor's planes (where the sensor is dense: a narrow
+    long-range lidar far ahead, where the reference's rings are a metre apart).
+    """
+    H, g = np.zeros((6, 6)), np.zeros(6)
+    cost = weight = 0.0
+    inliers = 0
+    sen, ref = fr.sensors.get(sensor), fr.sensors.get(fr.ref)
+    if sen is None or ref is None:
+        return _Normal(H, g, 0, 0.0, 0.0)
+    R, t = T[:3, :3], T[:3, 3]
+    # the sensor's points against the reference's planes
+    p = sen.source @ R.T + t
+    dist, idx = ref.tree.query(p, k=1)
+    ok = dist <= _gate(p)
+    if np.any(ok):
+        pl = ref.planes_at(idx[ok])
+        n = pl[:, :3] * _inside(p[ok], pl[:, 3:6], pl[:, 6:9], pl[:, 9:12])[:, None]
+        parts = _point_to_plane(p[ok], pl[:, 3:6], n)
+        H, g = H + parts[0], g + parts[1]
+        cost, weight, inliers = cost + parts[2], weight + parts[3], inliers + parts[4]
+    # the reference's points against the sensor's planes (matched in the sensor's frame)
+    q = fr.ref_near.get(sensor, np.zeros((0, 3)))
+    if len(q):
+        q_s = (q - t) @ R
+        dist, idx = sen.tree.query(q_s, k=1)
+        ok = dist <= _gate(q_s)
+        if np.any(ok):
+            pl = sen.planes_at(idx[ok])
+            n = pl[:, :3] * _inside(q_s[ok], pl[:, 3:6], pl[:, 6:9], pl[:, 9:12])[:, None]
+            parts = _point_to_plane(pl[:, 3:6] @ R.T + t, q[ok], n @ R.T)
+            H, g = H + parts[0], g + parts[1]
+            cost, weight, inliers = cost + parts[2], weight + parts[3], inliers + parts[4]
+    return _Normal(H, g, inliers, cost, weight)
+
+
+def _observed(H: F64) -> tuple[F64, F64]:
+    """The directions of the correction the matches constrain.
+
+    H : (6, 6) normal matrix over (v, w). In coordinates ``y = (v, LEVER_M w)`` (a rotation
+    counted as its displacement at LEVER_M), the eigen-directions with at least
+    DEGENERATE_POINTS matches' worth of information are solved for; the others are left at
+    zero (degeneracy-aware least squares: a side lidar seeing only the ground and a wall
+    along the track cannot say where it is along the track).
+
+    Returns (B (6, k): the observed directions mapped back to (v, w) so that a step is
+    ``B a``; lam (k,): their information).
+    """
+    S = np.diag([1.0, 1.0, 1.0, 1.0 / LEVER_M, 1.0 / LEVER_M, 1.0 / LEVER_M])
+    lam, V = np.linalg.eigh(S @ H @ S)
+    keep = lam > DEGENERATE_POINTS
+    return S @ V[:, keep], lam[keep]
+
+
+def _gn_step(H: F64, g: F64, B: F64) -> F64:
+    """(6,) Gauss-Newton step of normal equations (H, g) within the directions B."""
+    if B.shape[1] == 0:
+        return np.zeros(6)
+    A = B.T @ H @ B
+    a = np.linalg.lstsq(A, -(B.T @ g), rcond=None)[0]
+    return np.asarray(B @ a, dtype=np.float64)
+
+
+def _twist(T: F64) -> F64:
+    """(6,) (t, rotvec) of a small rigid transform."""
+    return np.asarray(
+        np.r_[T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()], dtype=np.float64
+    )
+
+
+def _apply(delta: F64, T: F64) -> F64:
+    """Left update: ``exp(delta) @ T`` (delta = (v, w))."""
+    D = np.eye(4)
+    D[:3, :3] = Rotation.from_rotvec(delta[3:]).as_matrix()
+    D[:3, 3] = delta[:3]
+    return D @ T
+
+
+def _solve(frames: list[_Frame], sensor: int) -> tuple[F64, list[_Normal], F64, list[_Normal]]:
+    """Gauss-Newton over the frames from the identity, in the observed directions; the
+    solution, each frame's normal equations at it, the observed directions (6, k) and the
+    normal equations at the identity."""
+    T = np.eye(4)
+    B = np.zeros((6, 0))
+    first: list[_Normal] = []
+    for _ in range(ITERATIONS):
+        eqs = [_linearise(fr, sensor, T) for fr in frames]
+        first = first or eqs
+        H, g = _total(eqs)
+        B = _observed(H)[0]
+        delta = _gn_step(H, g, B)
+        T = _apply(delta, T)
+        if np.linalg.norm(delta[3:]) < 1e-5 and np.linalg.norm(delta[:3]) < 1e-4:
+            break
+    eqs = [_linearise(fr, sensor, T) for fr in frames]
+    return T, eqs, _observed(_total(eqs)[0])[0], first
+
+
+def _total(eqs: list[_Normal]) -> tuple[F64, F64]:
+    H = sum((e.H for e in eqs), np.zeros((6, 6)))
+    g = sum((e.g for e in eqs), np.zeros(6))
+    return np.asarray(H, dtype=np.float64), np.asarray(g, dtype=np.float64)
+
+
+def _step(eqs: list[_Normal], T: F64, B: F64) -> F64:
+    """The solution of a subset's normal equations linearised at T (one GN step in the
+    directions B)."""
+    H, g = _total(eqs)
+    return _apply(_gn_step(H, g, B), T)
+
+
+def _difference(A: F64, B: F64) -> tuple[float, float]:
+    """Rotation (deg) and translation (m) between two corrections."""
+    D = np.linalg.inv(A) @ B
+    rot = float(np.degrees(np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec())))
+    # the translation difference where it matters: at the points, not the origin
+    return rot, float(np.linalg.norm(A[:3, 3] - B[:3, 3]))
+
+
+def _rms(eqs: list[_Normal]) -> float:
+    w = sum(e.weight for e in eqs)
+    return float(np.sqrt(sum(e.cost for e in eqs) / w)) if w > 0 else float("nan")
+
+
+def _estimate_sensor(frames: list[_Frame], sensor: int) -> SensorCorrection:
+    T, eqs, B, before = _solve(frames, sensor)
+    halves = (eqs[0::2], eqs[1::2])
+    n_half = (sum(e.inliers for e in halves[0]), sum(e.inliers for e in halves[1]))
+    inliers = sum(e.inliers for e in eqs)
+    if min(n_half) > 0:
+        T_a, T_b = _step(halves[0], T, B), _step(halves[1], T, B)
+        split_rot, split_trans = _difference(T_a, T_b)
+    else:
+        split_rot = split_trans = float("inf")
+    H = _total(eqs)[0]
+    w = sum(e.weight for e in eqs)
+    sigma2 = sum(e.cost for e in eqs) / max(w - 6.0, 1.0)
+    cov = sigma2 * B @ np.linalg.pinv(B.T @ H @ B) @ B.T if B.shape[1] else np.zeros((6, 6))
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    rot, trans = _difference(np.eye(4), T)
+    reason = ""
+    if inliers < MIN_INLIERS or min(n_half) < MIN_INLIERS_HALF:
+        reason = (
+            f"too little overlap with the reference: {inliers} planar matches "
+            f"({n_half[0]} / {n_half[1]} per half; need {MIN_INLIERS} / {MIN_INLIERS_HALF})"
+        )
+    elif split_rot > SPLIT_ROT_DEG or split_trans > SPLIT_TRANS_M:
+        reason = (
+            f"the two halves of the frames disagree by {split_rot:.3f} deg / "
+            f"{100 * split_trans:.1f} cm (trusted within {SPLIT_ROT_DEG} deg / "
+            f"{100 * SPLIT_TRANS_M:.0f} cm)"
+        )
+    elif rot > MAX_ROT_DEG or trans > MAX_TRANS_M:
+        reason = (
+            f"correction {rot:.3f} deg / {100 * trans:.1f} cm is larger than a merge error "
+            f"({MAX_ROT_DEG} deg / {100 * MAX_TRANS_M:.0f} cm): something else is wrong"
+        )
+    return SensorCorrection(
+        sensor, T, reason == "", reason, inliers, n_half, split_rot, split_trans,
+        float(np.degrees(std[3:].max())), float(std[:3].max()), _rms(before), _rms(eqs),
+        int(B.shape[1]),
+    )  # fmt: skip
+
+
+def estimate_alignment(
+    clouds: FrameClouds, frames: list[int] | None = None, n_frames: int = FRAMES, seed: int = 0
+) -> LidarAlignment:
+    """Estimate every sensor's correction against the reference sensor.
+
+    Parameters
+    ----------
+    clouds : the preparation's frame clouds (read here; no correction set yet).
+    frames : frame counters to choose from (default all of ``clouds``).
+    n_frames : frames used, spread evenly (alternate ones form the two halves).
+    seed : of the source points' subsampling.
+
+    Returns
+    -------
+    LidarAlignment; apply with ``clouds.set_corrections(result.corrections())``.
+    """
+    started = time.perf_counter()
+    pool = list(clouds.frames if frames is None else frames)
+    pick = np.unique(np.linspace(0, len(pool) - 1, min(n_frames, len(pool))).round().astype(int))
+    used, raw, warnings = [], [], []
+    for k in pick if pool else []:
+        try:
+            fc = clouds.get(pool[k])
+        except Exception as exc:  # an unreadable cloud: odometry will say so too
+            warnings.append(f"frame {pool[k]} unreadable for the lidar alignment ({exc})")
+            continue
+        used.append(pool[k])
+        raw.append((fc.p_base, fc.sensor_index))
+    out = estimate_from_points(raw, seed)
+    out.frames = used
+    out.warnings = warnings + out.warnings
+    out.seconds = time.perf_counter() - started
+    return out
+
+
+def estimate_from_points(
+    frames: list[tuple[F64, NDArray[np.uint8]]], seed: int = 0
+) -> LidarAlignment:
+    """:func:`estimate_alignment` on frames given as (points (n, 3) base frame, their
+    sensor_index (n,)); ``frames`` of the result is left empty."""
+    started = time.perf_counter()
+    if not frames:
+        return LidarAlignment(None, warnings=["lidar alignment skipped: no frames"])
+    ref = _pick_reference(frames)
+    if ref is None:
+        return LidarAlignment(
+            None, seconds=time.perf_counter() - started,
+            warnings=["lidar alignment skipped: the clouds have a single sensor_index"],
+        )  # fmt: skip
+    rng = np.random.default_rng(seed)
+    fr = [_frame(p, si, ref, rng) for p, si in frames]
+    # every sensor present, also one too sparse to match (it is reported, not applied)
+    sensors = sorted({int(s) for _, si in frames for s in np.unique(si)} - {ref})
+    out = LidarAlignment(ref)
+    for s in sensors:
+        c = _estimate_sensor(fr, s)
+        out.sensors[s] = c
+        if not c.applied:
+            out.warnings.append(
+                f"lidar {s} not aligned to lidar {ref} (kept as merged): {c.reason}"
+            )
+        log.info(
+            "lidar %d -> %d: %s, rot %s deg, t %s m, %d matches, halves differ %.4f deg / "
+            "%.4f m, rms %.4f -> %.4f m",
+            s, ref, "applied" if c.applied else "NOT applied", np.round(c.rotation_deg, 4),
+            np.round(c.T_ref_sensor[:3, 3], 4), c.inliers, c.split_rot_deg, c.split_trans_m,
+            c.rms_before_m, c.rms_after_m,
+        )  # fmt: skip
+    out.seconds = time.perf_counter() - started
+    return out
