@@ -198,3 +198,17 @@ def test_a_moving_plan_survives_its_record(walk) -> None:
     assert [r.annotation.cuboid for r in again.frames] == [
         r.annotation.cuboid for r in chunk.frames
     ]
+
+
+def test_the_walkers_gauge_label_follows_it_frame_by_frame(walk) -> None:
+    """Walking from 4 m right of the centreline towards it, the walker's lateral distance
+    to the clearance envelope shrinks at its walking speed (up to the walk cycle's box
+    wobble), and it is outside the envelope (1.775 m) all along this short walk."""
+    seq, _, plan, _, _ = walk
+    lidar = _times(seq, "lidar")
+    g = plan.objects[0].gauge
+    t = np.array([lidar[f] for f in plan.frames])
+    lat = np.array([g[f].lateral_distance_m for f in plan.frames])
+    assert not any(g[f].intrusion for f in plan.frames) and np.all(lat > 0)
+    slope = np.polyfit(t - t[0], lat, 1)[0]
+    assert abs(slope + SPEED) < 2 * 0.08 / (t[-1] - t[0]), slope
