@@ -157,3 +157,16 @@ def test_the_job_spec_sets_the_gauge_envelope() -> None:
     assert spec.gauge.edge_m == pytest.approx(1.575 + 0.3) and spec.gauge.height_m == 5.0
     with pytest.raises(ValueError, match="margin_m"):
         AugmentSpec.from_job_spec({"object": {"builtin": "rock"}, "gauge": {"margin_m": -1}})
+
+
+def test_a_list_of_one_object_is_the_single_object_form() -> None:
+    """One spelling per job: readers of ``object`` / ``placement`` (the evaluation) see the
+    object whichever form the job used."""
+    one = AugmentSpec(objects=(FAR,))
+    assert one.objects == () and one.object == FAR.object and one.placement == FAR.placement
+    assert (
+        AugmentSpec.from_job_spec(
+            {"objects": [{"object": {"builtin": "horse"}, "placement": {"s": 30, "yaw_deg": 90}}]}
+        ).placement.s
+        == 30
+    )

@@ -234,6 +234,21 @@ class AugmentSpec(_Section):
     #: the clearance envelope of the gauge labels (worker/augmentation/gauge.py)
     gauge: GaugeOutline = Field(default_factory=GaugeOutline)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _one_of_objects(cls, data: Any) -> Any:
+        """``objects`` of one object is the single-object form (one spelling per job:
+        readers of ``object`` / ``placement``, e.g. the evaluation, see it)."""
+        if isinstance(data, dict) and data.get("object") is None:
+            objs = data.get("objects") or ()
+            if len(objs) == 1:
+                one = objs[0]
+                one = one.model_dump() if isinstance(one, SceneObject) else dict(one)
+                data = {k: v for k, v in data.items() if k != "objects"}
+                data.update(object=one.get("object"), placement=one.get("placement") or {},
+                            motion=one.get("motion"))  # fmt: skip
+        return data
+
     @model_validator(mode="after")
     def _objects(self) -> AugmentSpec:
         if (self.object is None) == (not self.objects):
