@@ -15,5 +15,9 @@ BUILTIN_OBJECTS = ("person", "rock", "fallen_tree", "cow", "horse", "elephant")
 STRATEGY_NAMES = ("ins", "odometry", "rails", "fused", "auto")
 STRATEGIES = STRATEGY_NAMES
 
+#: Archives accepted as assets: one mesh file and the files it references (an OBJ with
+#: its .mtl and texture images), extracted by osdar_platform.archive_safety.
+MESH_ARCHIVE_TYPES = ("zip", "tar.gz")
+
 #: Mesh file types accepted for uploaded assets (loaded with an explicit type).
-MESH_FILE_TYPES = ("glb", "gltf", "obj", "ply", "stl", "off")
+MESH_FILE_TYPES = ("glb", "gltf", "obj", "ply", "stl", "off", *MESH_ARCHIVE_TYPES)

@@ -38,8 +38,15 @@ router = APIRouter(prefix="/assets", tags=["assets"], responses=AUTH_ERRORS)
     responses={**INVALID, **TOO_LARGE, **BAD_REQUEST},
     summary="Upload a mesh (raw body; its type given explicitly)",
     openapi_extra=binary_body(
-        ["application/octet-stream", "model/gltf-binary", "model/gltf+json", "model/obj"],
-        "The mesh file",
+        [
+            "application/octet-stream",
+            "model/gltf-binary",
+            "model/gltf+json",
+            "model/obj",
+            "application/zip",
+            "application/gzip",
+        ],
+        "The mesh file, or a zip / tar.gz with an OBJ, its MTL and its texture images",
     ),
 )
 async def upload_asset(
