@@ -407,19 +407,41 @@ def _reflectivity(m: _Merged) -> NDArray[np.float32]:
     return np.clip(0.08 + 0.6 * lum, 0.05, 0.95).astype(np.float32)
 
 
-def welded_normals(v: F64, f: NDArray[np.int64]) -> F64:
-    """(n, 3) area-weighted vertex normals with vertices at the same position welded (UV
-    seams do not show as shading seams; hard edges are left to the shader's crease test)."""
+CREASE_COS = 0.8
+"""Faces meeting at more than acos(0.8) = 36.9 deg are not smoothed together (the
+shader's own hard-edge test uses the same angle)."""
+
+
+def welded_normals(v: F64, f: NDArray[np.int64], crease_cos: float = CREASE_COS) -> F64:
+    """(n, 3) area-weighted vertex normals, smoothed across vertices at the same position
+    (UV seams do not show as shading seams) but not across creases: each face corner
+    sums the faces around its position whose normal is within the crease angle of its
+    own face's; a vertex averages its corners."""
     q = np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0)
     key = np.round(q / max(float(np.ptp(q, axis=0).max()), 1e-9) * 2**20).astype(np.int64)
     _, inv = np.unique(key, axis=0, return_inverse=True)
     inv = inv.reshape(-1)
-    tri = v[f]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    acc = np.zeros((inv.max() + 1, 3))
-    for k in range(3):
-        np.add.at(acc, inv[f[:, k]], fn)
-    out = acc[inv]
+    tri = q[f]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # area-weighted
+    fu = fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)
+    m = len(f)
+    corner_face = np.repeat(np.arange(m), 3)
+    group = inv[f.reshape(-1)]
+    order = np.argsort(group, kind="stable")
+    g_sorted = group[order]
+    starts = np.searchsorted(g_sorted, g_sorted, side="left")
+    counts = np.searchsorted(g_sorted, g_sorted, side="right") - starts
+    # every (corner, other corner of its position) pair
+    rep = np.repeat(np.arange(len(order)), counts)
+    within = np.arange(len(rep)) - np.repeat(np.cumsum(counts) - counts, counts)
+    i = order[rep]
+    j = order[starts[rep] + within]
+    fi, fj = corner_face[i], corner_face[j]
+    close = np.einsum("ij,ij->i", fu[fi], fu[fj]) > crease_cos
+    corner_n = np.zeros((3 * m, 3))
+    np.add.at(corner_n, i[close], fn[fj[close]])
+    out = np.zeros_like(q)
+    np.add.at(out, f.reshape(-1), corner_n)
     nrm = np.linalg.norm(out, axis=1, keepdims=True)
     return np.where(nrm > 1e-20, out / np.maximum(nrm, 1e-30), np.array([0.0, 0.0, 1.0]))
 

@@ -145,7 +145,9 @@ def checkerboard(n: int = 8, px: int = 32, lo: int = 20, hi: int = 235) -> np.nd
     return np.repeat(v[..., None], 3, axis=2)
 
 
-def textured_box(size_xyz=(0.6, 1.8, 0.6), texture: np.ndarray | None = None) -> bytes:
+def textured_box(
+    size_xyz=(0.6, 1.8, 0.6), texture: np.ndarray | None = None, normals: bool = True
+) -> bytes:
     """A GLB box (glTF frame: +Y up), 24 vertices with per-face UVs over the full
     texture, metallic 0; its size is given in the glTF frame."""
     hx, hy, hz = np.asarray(size_xyz) / 2
@@ -169,7 +171,7 @@ def textured_box(size_xyz=(0.6, 1.8, 0.6), texture: np.ndarray | None = None) ->
             faces += [[k, k + 1, k + 2], [k, k + 2, k + 3]]
     g = GlbBuilder()
     tex = g.image(checkerboard() if texture is None else texture)
-    m = g.mesh(np.array(pos), np.array(faces), uv=np.array(uv), normals=np.array(nrm),
-               material=g.material(tex))  # fmt: skip
+    m = g.mesh(np.array(pos), np.array(faces), uv=np.array(uv),
+               normals=np.array(nrm) if normals else None, material=g.material(tex))  # fmt: skip
     g.node(mesh=m)
     return g.glb()

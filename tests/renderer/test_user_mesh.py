@@ -11,7 +11,8 @@ import pytest
 import trimesh
 from trimesh.exchange.gltf import export_gltf
 
-from renderer.assets.user_mesh import MeshError, load_user_mesh
+from renderer.assets.user_mesh import MeshError, load_user_mesh, welded_normals
+from tests.renderer.gltf_build import textured_box
 
 EXTENTS = np.array([1.0, 2.0, 3.0])
 
@@ -199,3 +200,20 @@ def test_archive_refusals() -> None:
         load_user_mesh(two, "zip")
     with pytest.raises(MeshError, match="archive refused"):
         load_user_mesh(b"PK\x03\x04 not really a zip", "zip")
+
+
+def test_normals_without_the_file_smooth_seams_not_creases() -> None:
+    """A 24-vertex box without NORMAL: every face stays flat (no smoothing across its
+    90 deg edges, which drew discs on the faces); a sphere whose every corner is its own
+    vertex stays smooth across those seams."""
+    m = load_user_mesh(textured_box(normals=False), "glb")
+    tri = m.vertices[m.faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    for k in range(3):
+        np.testing.assert_allclose(m.normals[m.faces[:, k]], fn, atol=1e-6)
+    s = trimesh.creation.uv_sphere(radius=1.0, count=[24, 24])
+    v = np.asarray(s.vertices)[np.asarray(s.faces).reshape(-1)]
+    f = np.arange(len(v)).reshape(-1, 3)
+    n = welded_normals(v, f)
+    assert np.min(np.einsum("ij,ij->i", n, v / np.linalg.norm(v, axis=1, keepdims=True))) > 0.99
