@@ -190,9 +190,9 @@ class Job(Base):
     finished_at: Mapped[datetime | None] = mapped_column(Timestamp, default=None)
     #: When a message of the job was last known to be in the broker (handed to it at the
     #: end of a stage, or taken from it when a stage started): the reaper compares it with
-    #: the Redis broker's start (worker/orchestration/reaper.py). None: not since QUEUED.
+    #: the time since which the broker's data is intact (worker/orchestration/reaper.py).
     broker_seen_at: Mapped[datetime | None] = mapped_column(Timestamp, default=None)
-    #: The Redis ``run_id`` the reaper last re-sent the job to (its own sends only).
+    #: The broker sentinel's token the reaper last re-sent the job under (its own sends).
     broker_run_id: Mapped[str | None] = mapped_column(String(64), default=None)
 
     events: Mapped[list[JobEvent]] = relationship(

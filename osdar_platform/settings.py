@@ -114,15 +114,16 @@ class Settings(BaseSettings):
     store_retry_max_s: float = Field(30.0, gt=0)
     store_retry_budget_s: float = Field(120.0, gt=0)
     #: The reaper (worker/orchestration/reaper.py), run by every worker at start and then every
-    #: ``reaper_interval_s`` (0: never). A RUNNING job whose every lease of its attempt
-    #: expired (worker/orchestration/lease.py: taken when a stage starts, renewed every
-    #: ``lease_renew_s`` for ``lease_ttl_s``) is re-queued or FAILED; so is one without a
-    #: heartbeat (row update) for ``reaper_stale_after_s`` (None: task_time_limit_s +
-    #: visibility_margin_s). A job whose message was handed to a Redis broker before that
-    #: Redis started (its ``run_id`` changed: restarted without persistence) is re-queued;
-    #: ``broker_restart_margin_s`` covers clock differences between the hosts and the
-    #: time between a send and its timestamp. PENDING jobs older than
-    #: ``reaper_orphan_grace_s`` are sent again.
+    #: ``reaper_interval_s`` (0: never). A RUNNING job with an expired lease of its attempt
+    #: (worker/orchestration/lease.py: taken when a stage starts, renewed every
+    #: ``lease_renew_s`` for ``lease_ttl_s``) is re-queued or FAILED. A job whose message was
+    #: handed to a Redis broker before the reaper's sentinel key there was (re)written (the
+    #: data was lost: restarted without persistence, flushed) is re-queued;
+    #: ``broker_restart_margin_s`` covers clock differences between the hosts and the time
+    #: between a send and its timestamp. With a broker other than Redis, a RUNNING job
+    #: without a row update for ``reaper_stale_after_s`` (None: task_time_limit_s +
+    #: visibility_margin_s) is re-queued. PENDING jobs older than ``reaper_orphan_grace_s``
+    #: are sent again.
     reaper_interval_s: float = Field(60.0, ge=0)
     reaper_stale_after_s: float | None = Field(None, gt=0)
     reaper_orphan_grace_s: float = Field(120.0, gt=0)

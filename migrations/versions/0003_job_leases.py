@@ -5,8 +5,9 @@ Revises: 0002
 Create Date: 2026-11-25
 
 A lease per stage a worker process runs (taken at its start, renewed by a heartbeat,
-deleted at its end), and when a job's message was last known to be in the broker: the
-reaper decides from these instead of reading the broker's internal structures
+deleted at its end), when a job's message was last known to be in the broker, and the
+broker sentinel the reaper last re-sent it under: the reaper decides from these instead
+of reading the broker's internal structures
 (worker/orchestration/reaper.py). Plain SQLAlchemy types only; the columns added to
 ``jobs`` go through batch mode (SQLite recreates the table; PostgreSQL alters it).
 """

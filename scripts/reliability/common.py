@@ -28,6 +28,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import httpx
 import psutil
@@ -51,23 +52,27 @@ PG_CANDIDATES = (
     "postgresql+psycopg://postgres@127.0.0.1:5432/test",
     "postgresql+psycopg://root@127.0.0.1:5432/test",
 )
+#: The Redis server of REDIS_URL's port: the machine's (6379), or one of the run's own
+#: (another port, e.g. when other runs share this machine's Redis and would restart it).
+REDIS_PORT = urlsplit(REDIS_URL).port or 6379
+_OWN_REDIS = REDIS_PORT != 6379
 REDIS_START = [
     "redis-server",
     "--daemonize",
     "yes",
     "--bind",
     "127.0.0.1",
-    "-::1",
+    *(() if _OWN_REDIS else ("-::1",)),
     "--port",
-    "6379",
+    str(REDIS_PORT),
     "--save",
     "",
     "--appendonly",
     "no",
     "--dir",
-    "/var/lib/redis",
+    tempfile.gettempdir() if _OWN_REDIS else "/var/lib/redis",
     "--logfile",
-    "/var/log/redis/ci.log",
+    f"{tempfile.gettempdir()}/redis-{REDIS_PORT}.log" if _OWN_REDIS else "/var/log/redis/ci.log",
 ]
 TERMINAL = ("SUCCEEDED", "FAILED", "CANCELLED")
 
@@ -145,7 +150,7 @@ def redis_db(url: str = REDIS_URL) -> Iterator[str]:
 
 def redis_stop() -> None:
     subprocess.run(
-        ["redis-cli", "-p", "6379", "shutdown", "nosave"], capture_output=True, timeout=20
+        ["redis-cli", "-p", str(REDIS_PORT), "shutdown", "nosave"], capture_output=True, timeout=20
     )
     wait_for(lambda: not redis_up(), 20, "Redis to stop")
 

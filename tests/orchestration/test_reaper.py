@@ -4,6 +4,7 @@ machine's Redis (``INFO server``), and several reapers racing for the same jobs.
 
 from __future__ import annotations
 
+import json
 import threading
 from collections.abc import Iterator
 from dataclasses import replace
@@ -22,6 +23,7 @@ from scripts.reliability import common
 from tests.conftest_service import make_pg_schema, memory_celery, sent_tasks
 from worker.orchestration import lease
 from worker.orchestration.reaper import (
+    SENTINEL_KEY,
     BrokerEpoch,
     JobView,
     LeaseView,
@@ -75,7 +77,7 @@ def test_decide_broker_restart_rules(tmp_path: Path) -> None:
     epoch = BrokerEpoch("run-2", NOW - 30 * S)  # Redis started 30 s ago
     queued_before = JobView("q", JobState.QUEUED, NOW - 31 * S)
     why = decide(queued_before, NOW, epoch, st)
-    assert why is not None and why.startswith("broker restarted: Redis run_id run-2")
+    assert why is not None and why.startswith("broker lost its data: its sentinel run-2")
     # within the margin after the start: it may have been sent to the old Redis
     assert decide(JobView("q", JobState.QUEUED, NOW - 29 * S), NOW, epoch, st) is not None
     assert decide(JobView("q", JobState.QUEUED, NOW - 27 * S), NOW, epoch, st) is None
@@ -97,11 +99,15 @@ def test_decide_stale_backstop(tmp_path: Path) -> None:
     st = _settings(tmp_path, task_time_limit_s=60, task_soft_time_limit_s=50,
                    visibility_margin_s=10, visibility_timeout_s=70)  # fmt: skip
     stale = JobView("r", JobState.RUNNING, NOW - 71 * S, broker_seen_at=NOW - 71 * S)
-    why = decide(stale, NOW, None, st)
+    why = decide(stale, NOW, None, st, stale_rule=True)
     assert why is not None and "no progress for 70s" in why
-    assert decide(JobView("r", JobState.RUNNING, NOW - 69 * S, NOW - 69 * S), NOW, None, st) is None
-    # a QUEUED job waits in a backlog as long as it must: never stale
-    assert decide(JobView("q", JobState.QUEUED, NOW - 10_000 * S), NOW, None, st) is None
+    recent = JobView("r", JobState.RUNNING, NOW - 69 * S, NOW - 69 * S)
+    assert decide(recent, NOW, None, st, stale_rule=True) is None
+    # with Redis a RUNNING job between stages waits in a backlog as long as it must
+    assert decide(stale, NOW, BrokerEpoch("t", NOW - 100 * S), st) is None
+    # a QUEUED job is never stale
+    queued = JobView("q", JobState.QUEUED, NOW - 10_000 * S)
+    assert decide(queued, NOW, None, st, stale_rule=True) is None
 
 
 # ---------------------------------------------------------------------------- sweeps
@@ -234,30 +240,51 @@ def test_reapers_racing_requeue_each_job_once(settings: Settings) -> None:
     assert sorted(requeues) == sorted(ids)
 
 
-def test_a_broker_restart_is_seen_from_redis_identity(settings: Settings) -> None:
+def test_a_lost_broker_is_seen_from_the_sentinel(settings: Settings) -> None:
+    """Redis restarted without persistence or flushed: both take the sentinel with the
+    messages. Shown by deleting the sentinel of a Redis database of this test's own."""
     if not common.redis_up():
         pytest.skip("Redis not reachable")
-    redis_settings = settings.model_copy(update={"broker_url": common.REDIS_URL})
+    url = common.REDIS_URL.rsplit("/", 1)[0] + "/14"  # not the scenarios' database
+    client = common.redis_client(url)
+    client.delete(SENTINEL_KEY)
+    redis_settings = settings.model_copy(update={"broker_url": url})
     epoch = broker_epoch(redis_settings)
-    assert epoch is not None and len(epoch.run_id) == 40
-    assert epoch.started_at <= utcnow()
-    info = common.redis_client().info("server")
-    assert epoch.run_id == info["run_id"]
-    assert broker_epoch(settings) is None  # the SQLite broker reports no identity
+    assert epoch is not None and epoch.written and len(epoch.token) == 32
+    assert utcnow() - timedelta(seconds=5) < epoch.since <= utcnow()
+    assert broker_epoch(redis_settings) == replace(epoch, written=False)  # read, not rewritten
+    assert broker_epoch(settings) is None  # the SQLite broker is not checked
+    client.set(SENTINEL_KEY, b"not ours")
+    with pytest.raises(ValueError, match="unreadable"):
+        broker_epoch(redis_settings)
+    # a sentinel written a minute ago (the broker lost its data then)
+    minute_ago = {"token": "t" * 32, "since": (utcnow() - timedelta(seconds=60)).isoformat()}
+    client.set(SENTINEL_KEY, json.dumps(minute_ago))
+    epoch = broker_epoch(redis_settings)
+    assert epoch is not None and not epoch.written and epoch.token == "t" * 32
 
     before, after, running = _jobs(settings, 3, state=JobState.QUEUED)
-    sent_before = epoch.started_at - timedelta(seconds=5)  # handed to the previous Redis
+    sent_before = epoch.since - timedelta(seconds=5)  # handed to the broker before the loss
     _set(settings, before, updated_at=sent_before)
     _set(settings, running, state=JobState.RUNNING, attempt=1, broker_seen_at=sent_before,
          updated_at=utcnow())  # fmt: skip
+    _set(settings, after, updated_at=epoch.since + timedelta(seconds=30))  # after: it is there
     app = memory_celery()
     sent_tasks()
     report = reap(redis_settings, app)
-    assert report.broker is not None and report.broker.run_id == epoch.run_id
+    assert report.broker is not None and report.broker.token == epoch.token
     assert sorted(report.requeued) == sorted([before, running])
-    assert "broker restarted" in report.reasons[before]
+    why = f"broker lost its data: its sentinel {epoch.token[:8]}"
+    assert report.reasons[before].startswith(why)
     assert sorted(t["id"] for t in sent_tasks()) == sorted([before, running])
-    assert _row(settings, before).broker_run_id == epoch.run_id  # sent to this Redis
-    assert _row(settings, after).state == JobState.QUEUED  # sent after the start: there
-    # the next sweep finds the re-sent jobs covered, even within the margin
+    assert _row(settings, before).broker_run_id == epoch.token  # sent under this sentinel
+    assert _row(settings, after).state == JobState.QUEUED and _row(settings, after).stage is None
+    # the next sweep finds the re-sent jobs covered, though within the margin of the loss
     assert reap(redis_settings, app).requeued == [] and sent_tasks() == []
+    # the broker flushed again: everything handed to it before is sent again, once
+    client.delete(SENTINEL_KEY)
+    report = reap(redis_settings, app)
+    assert report.broker is not None and report.broker.written
+    assert sorted(report.requeued) == sorted([before, running, after])
+    assert reap(redis_settings, app).requeued == []
+    client.delete(SENTINEL_KEY)

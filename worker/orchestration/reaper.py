@@ -1,8 +1,8 @@
 """The reaper: jobs that no worker will ever finish are re-queued (or FAILED), never lost.
 
-It decides from the database alone (a lease per running stage, ``lease.py``) and from
-the broker's public identity (Redis ``INFO server``: ``run_id`` and ``uptime_in_seconds``),
-never from the broker's internal layout. Celery's at-least-once delivery covers a pool
+It decides from the database alone (a lease per running stage, ``lease.py``) and from a
+sentinel key of its own in the broker's Redis database, never from the broker's internal
+layout (kombu's queue lists and unacked hash). Celery's at-least-once delivery covers a pool
 process that dies mid-task while its worker lives (``task_reject_on_worker_lost`` puts the
 message back at once, the stage runs again and takes its lease over). Four cases are left,
 and each leaves a job active with nothing working on it. An active job is in one of two
@@ -18,21 +18,30 @@ handed to the broker is ``jobs.broker_seen_at``).
   (hours by default): the re-queue does not wait for it. A new attempt starts; sibling
   chunks still running stop at their next check, and late deliveries of the old attempt
   are refused by the attempt check.
-- **broker restarted**: Redis restarted without persistence loses every queued and
-  unacknowledged message. A job in the broker whose message was handed to it (QUEUED:
-  ``updated_at``; RUNNING: ``broker_seen_at``) before the current Redis started (now minus
-  its uptime), plus ``broker_restart_margin_s`` for the hosts' clocks and the time
-  between a send and its timestamp, is re-queued, unless the reaper itself sent it to
-  this Redis (``jobs.broker_run_id`` is its ``run_id``; that stamp stops a job re-sent
-  just after the restart from being re-sent again). Running stages are cancelled by
-  Celery when the connection drops (``worker_cancel_long_running_tasks_on_connection_loss``)
-  and release their leases without a hand-off, so their jobs fall under this rule at once.
-  Other brokers report no identity and are not checked (the SQLite broker of the
-  embedded mode never loses a message).
-- **stale RUNNING** (the backstop): no row update (``updated_at``: every stage, sub-stage
-  and frame writes it) for longer than the hard time limit plus a margin and no live
-  lease. A task stopped at the hard time limit is acknowledged as failed (no
-  redelivery); no stage runs longer than that limit.
+- **broker lost its data**: Redis restarted without persistence (or flushed, or failed
+  over to an empty replica) loses every queued and unacknowledged message. The reaper
+  keeps a sentinel key in the broker's database (``osdar_ar:broker_epoch``: a random token
+  and the time it was written, ``SET NX`` so all reapers agree). Whatever removes the
+  messages removes the sentinel too: a reaper that finds it gone writes a new one, and
+  the broker's data is known intact only since then. A job in the broker whose message
+  was handed to it (QUEUED: ``updated_at``; RUNNING: ``broker_seen_at``) before the
+  sentinel was written, plus ``broker_restart_margin_s`` for the hosts' clocks and the
+  time between a send and its timestamp, is re-queued, unless the reaper itself sent it
+  under this sentinel (``jobs.broker_run_id`` holds its token; that stamp stops a job
+  re-sent just after the loss from being re-sent again). A persistent Redis keeps the
+  sentinel with the messages: nothing is re-sent. Running stages are cancelled by Celery
+  when the connection drops (``worker_cancel_long_running_tasks_on_connection_loss``) and
+  release their leases without a hand-off, so their jobs fall under this rule at once.
+  Other brokers are not checked (the SQLite broker of the embedded mode never loses a
+  message).
+- **stale RUNNING** (brokers other than Redis): no row update (``updated_at``: every
+  stage, sub-stage and frame writes it) for longer than the hard time limit plus a margin
+  and no lease. The SQLite broker of the embedded mode never gives a message back: a
+  worker that died holding one it had not started (no lease yet) leaves the job there.
+  With Redis the rule does not apply: such a message comes back after the visibility
+  timeout, and a RUNNING job between stages may wait behind a backlog as long as it must
+  (the rule re-queued those on a loaded machine). A task stopped at the hard time limit
+  is not a case of its own any more: its process is killed and its lease expires.
 - **PENDING**: the API committed the row but could not send the message
   (``worker.orchestration.queue.requeue_pending``).
 
@@ -50,8 +59,8 @@ back. A send that fails moves the job back to PENDING
 (``requeue_pending`` sends it later). The new delivery starts a new attempt through
 ``state.mark_running``, which counts deliveries: a job already delivered
 ``max_deliveries`` times is FAILED here with the reason instead. Duplicate messages (a
-persistent Redis restarted: its messages survive and are sent again) are harmless: the
-attempt check stops the older attempt, store keys are attempt-scoped, one conditional
+job handed to the broker between the loss and the new sentinel is sent again) are
+harmless: the attempt check stops the older attempt, store keys are attempt-scoped, one conditional
 update publishes, and the winner removes every other attempt's objects.
 
 Every worker runs :func:`reap` when it is ready and then every ``reaper_interval_s``
@@ -63,9 +72,11 @@ child forked later.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import threading
 import time
+import uuid
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
@@ -85,9 +96,11 @@ log = logging.getLogger(__name__)
 STALE_REASON = "worker lost: no progress for {s:.0f}s (time limit or killed worker)"
 LEASE_REASON = "lease expired: {stage} held by {holder}, {ago:.0f}s ago (worker lost)"
 BROKER_REASON = (
-    "broker restarted: Redis run_id {run_id} up since {since}, the job's message handed "
-    "to it at {sent}"
+    "broker lost its data: its sentinel {token} written at {since}, the job's message "
+    "handed to it at {sent}"
 )
+#: The reaper's own key in the broker's Redis database (module docstring).
+SENTINEL_KEY = "osdar_ar:broker_epoch"
 
 
 @dataclass
@@ -108,25 +121,39 @@ def stale_after_s(settings: Settings) -> float:
 # ---------------------------------------------------------------------------- broker
 @dataclass(frozen=True)
 class BrokerEpoch:
-    """One life of the Redis broker: its ``run_id`` and when it started (this clock)."""
+    """Since when the Redis broker's data is known intact: the sentinel's token and time."""
 
-    run_id: str
-    started_at: datetime
+    token: str
+    since: datetime
+    #: This call wrote the sentinel: the previous one was gone (data lost, or first run).
+    written: bool = False
+
+
+def _is_redis(settings: Settings) -> bool:
+    return str(settings.broker_url).startswith(("redis://", "rediss://"))
 
 
 def broker_epoch(settings: Settings) -> BrokerEpoch | None:
-    """The Redis broker's ``run_id`` and start from its public ``INFO server``; None for
-    other brokers. Raises if Redis is not reachable."""
-    url = str(settings.broker_url)
-    if not url.startswith(("redis://", "rediss://")):
+    """The sentinel of the Redis broker (written now if it is gone); None for other
+    brokers. Raises if Redis is not reachable or the sentinel is not ours."""
+    if not _is_redis(settings):
         return None
+    url = str(settings.broker_url)
     client = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5)
     try:
-        info = client.info("server")
+        raw = client.get(SENTINEL_KEY)
+        written = False
+        if raw is None:
+            value = {"token": uuid.uuid4().hex, "since": utcnow().isoformat()}
+            written = bool(client.set(SENTINEL_KEY, json.dumps(value), nx=True))
+            raw = client.get(SENTINEL_KEY)  # another reaper's, if it was faster
+        data = json.loads(raw or "null")
+        since = datetime.fromisoformat(data["since"])
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f"broker sentinel {SENTINEL_KEY!r} unreadable: {raw!r}") from exc
     finally:
         client.close()
-    uptime = timedelta(seconds=int(info["uptime_in_seconds"]))
-    return BrokerEpoch(str(info["run_id"]), utcnow() - uptime)
+    return BrokerEpoch(str(data["token"]), since, written)
 
 
 # ---------------------------------------------------------------------------- decide
@@ -157,8 +184,13 @@ def decide(
     settings: Settings,
     *,
     expire_leases: bool = True,
+    stale_rule: bool = False,
 ) -> str | None:
-    """Why ``job`` must be re-queued (module docstring), or None to leave it alone."""
+    """Why ``job`` must be re-queued (module docstring), or None to leave it alone.
+
+    ``expire_leases``: False right after the reaper's own database outage;
+    ``stale_rule``: the broker is not Redis (see the module docstring).
+    """
     running = job.state == JobState.RUNNING
     expired = [lease for lease in job.leases if lease.expires_at <= now]
     if running and expired:  # a holder died with the stage's message in its hands
@@ -171,16 +203,17 @@ def decide(
         return None  # held: its holders renew their leases
     # in the broker (a QUEUED job's message is there, whatever a stale delivery holds)
     seen = job.broker_seen_at
-    if epoch is not None and job.broker_run_id != epoch.run_id:
+    if epoch is not None and job.broker_run_id != epoch.token:
         sent = job.updated_at if not running else (seen or job.updated_at)
         margin = timedelta(seconds=settings.broker_restart_margin_s)
-        if sent < epoch.started_at + margin:
+        if sent < epoch.since + margin:
             return BROKER_REASON.format(
-                run_id=epoch.run_id[:12],
-                since=epoch.started_at.isoformat(timespec="seconds"),
+                token=epoch.token[:8],
+                since=epoch.since.isoformat(timespec="seconds"),
                 sent=sent.isoformat(timespec="seconds"),
             )
-    if running and job.updated_at < now - timedelta(seconds=stale_after_s(settings)):
+    stale_cut = now - timedelta(seconds=stale_after_s(settings))
+    if stale_rule and running and job.updated_at < stale_cut:
         return STALE_REASON.format(s=stale_after_s(settings))
     return None
 
@@ -263,24 +296,24 @@ def _requeue(
             if back:
                 s.add(JobEvent(job_id=job_id, kind="enqueue_failed", message=str(exc)[:2000]))
         return None
-    if epoch is not None:  # sent to this Redis: not "sent before its restart" next sweep
+    if epoch is not None:  # sent under this sentinel: not "sent before it" next sweep
         with sessions.begin() as s:
             s.execute(
                 update(Job)
                 .where(Job.id == job_id, Job.state == JobState.QUEUED, Job.updated_at == now)
-                .values(broker_run_id=epoch.run_id, updated_at=now)
+                .values(broker_run_id=epoch.token, updated_at=now)
             )
     log.warning("reaper: job %s re-queued (%s)", job_id, why)
     return "requeued"
 
 
 def _active_jobs(s: Any, now: datetime, epoch: BrokerEpoch | None, settings: Settings) -> Any:
-    """The jobs a rule could apply to: every RUNNING one; QUEUED ones only when the
-    broker restarted after they were sent (and the reaper did not send them to it)."""
+    """The jobs a rule could apply to: every RUNNING one; QUEUED ones only when handed to
+    the broker before its sentinel was written (and not re-sent under it by a reaper)."""
     where = [Job.state == JobState.RUNNING]
     if epoch is not None:
-        cut = epoch.started_at + timedelta(seconds=settings.broker_restart_margin_s)
-        not_ours = or_(Job.broker_run_id.is_(None), Job.broker_run_id != epoch.run_id)
+        cut = epoch.since + timedelta(seconds=settings.broker_restart_margin_s)
+        not_ours = or_(Job.broker_run_id.is_(None), Job.broker_run_id != epoch.token)
         where.append(and_(Job.state == JobState.QUEUED, Job.updated_at < cut, not_ours))
     rows = s.execute(
         select(
@@ -321,8 +354,8 @@ def reap(
     report = ReapReport()
     try:
         report.broker = broker_epoch(settings)
-    except Exception as exc:  # broker down: the lease and stale rules still apply
-        log.warning("reaper: broker identity not readable: %s", exc)
+    except Exception as exc:  # broker down: the lease rule still applies
+        log.warning("reaper: broker sentinel not readable: %s", exc)
     engine = None
     if sessions is None:
         kw = {} if settings.is_sqlite else {"pool_size": 1, "max_overflow": 2}
@@ -334,8 +367,10 @@ def reap(
             terminal = select(Job.id).where(Job.state.in_(list(TERMINAL_STATES)))
             s.execute(delete(JobLease).where(JobLease.job_id.in_(terminal)))
             jobs = _active_jobs(s, now, report.broker, settings)
+        stale_rule = not _is_redis(settings)
         for job in jobs:
-            why = decide(job, now, report.broker, settings, expire_leases=expire_leases)
+            why = decide(job, now, report.broker, settings, expire_leases=expire_leases,
+                         stale_rule=stale_rule)  # fmt: skip
             if why is None:
                 continue
             out = _requeue(sessions, app, settings, job, why, report.broker)
@@ -368,19 +403,18 @@ class ReaperThread(threading.Thread):
         self.interval_s = interval_s
         self._halt = threading.Event()
         self._expire_from = 0.0  # time.monotonic() from which leases may be expired
-        self._run_id: str | None = None
 
     def run(self) -> None:
         while not self._halt.is_set():
             try:
                 expire = time.monotonic() >= self._expire_from
                 report = reap(self.settings, self.app, expire_leases=expire)
-                epoch = report.broker
-                if epoch is not None and epoch.run_id != self._run_id:
-                    if self._run_id is not None:
-                        log.warning("reaper: the Redis broker restarted at %s (run_id %s)",
-                                    epoch.started_at.isoformat(), epoch.run_id)  # fmt: skip
-                    self._run_id = epoch.run_id
+                if report.broker is not None and report.broker.written:
+                    log.warning(
+                        "reaper: the broker's sentinel was gone (Redis restarted without "
+                        "persistence, flushed or evicted, or first run): jobs handed to it "
+                        "before %s are sent again", report.broker.since.isoformat(),
+                    )  # fmt: skip
             except Exception:
                 self._expire_from = time.monotonic() + self.settings.lease_ttl_s
                 log.exception("reaper sweep failed (next in %.0fs)", self.interval_s)
