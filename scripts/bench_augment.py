@@ -15,7 +15,11 @@ Per run, in the same process and with the same worker count:
   start, planning, frames and assembly all inside the clock.
 
 Prints per-stage seconds (medians over runs), job / floor (median of the per-run
-ratios) and the frames stage alone / floor. With ``--origins`` (default
+ratios) and the frames stage alone / floor. Then the camera's look in the last job's
+output (``--look-frames`` frames per camera, the object's poly2d from the labels): the
+robust noise inside the object over the frame's noise at the same level measured around
+it (renderer/sensor_noise.py; the issue's bound [0.8, 1.25]), and the edge sigma of the
+object's silhouette over that of the real edges around it. With ``--origins`` (default
 ``SEQ/ground_truth/lidar_origins.json`` when present) it also compares the lidar cast
 with per-sensor origins against the paper's single origin on every frame.
 """
@@ -32,19 +36,22 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from geometry.transforms import invert_T
 from renderer.lidar_cast import hidden_from, origins_from_json, point_origins
+from renderer.sensor_noise import estimate_noise, robust_sigma, sharpness_inside_outside
 from worker.augmentation.augment import augment
 from worker.augmentation.frame import cast_frame_lidar
 from worker.augmentation.plan import plan_augmentation
 from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel, RenderSpec
 from worker.bench.floor import measure_floor
 from worker.osdar.pcd import read_pcd
-from worker.osdar.sequence import Sequence, uri_to_path
+from worker.osdar.sequence import Sequence, find_labels_file, uri_to_path
 from worker.preparation.config import PrepareConfig
 from worker.preparation.prepare import prepare
 
@@ -96,6 +103,64 @@ def origins_gain(seq_folder: Path, spec: AugmentSpec, prepared: Any, origins_fil
         )
 
 
+def _rgb(path: Path) -> np.ndarray:
+    return np.asarray(Image.open(path).convert("RGB"))
+
+
+def look_check(seq: Sequence, out: Path, cams: list[str], n_frames: int) -> dict[str, Any]:
+    """Noise and sharpness of the object against its surroundings in the output frames."""
+    aug = Sequence.open(out)
+    ol = json.loads(find_labels_file(out).read_text())["openlabel"]
+    noise, sharp = [], []
+    frames = seq.frame_indices
+    for f in frames[:: max(1, len(frames) // max(n_frames, 1))][:n_frames]:
+        objs = ol["frames"].get(str(f), {}).get("objects", {})
+        for cam in cams:
+            polys = [
+                p["val"]
+                for o in objs.values()
+                for p in o.get("object_data", {}).get("poly2d", [])
+                if p.get("coordinate_system") == cam
+            ]
+            if not polys:
+                continue
+            src, dst = _rgb(seq.image_path(f, cam)), _rgb(aug.image_path(f, cam))
+            H, W = src.shape[:2]
+            mask = np.zeros((H, W), np.uint8)
+            for val in polys:
+                cv2.fillPoly(mask, [np.round(np.reshape(val, (-1, 2))).astype(np.int32)], 1)
+            inner = cv2.erode(mask, np.ones((7, 7), np.uint8)).astype(bool)
+            if inner.sum() < 300:
+                continue
+            vs, us = np.nonzero(mask)
+            win = (max(us.min() - 60, 0), max(vs.min() - 60, 0), min(us.max() + 61, W),
+                   min(vs.max() + 61, H))  # fmt: skip
+            prof = estimate_noise(src, win, cv2.dilate(mask, np.ones((9, 9), np.uint8))[
+                win[1]:win[3], win[0]:win[2]].astype(bool))  # fmt: skip
+            if prof is None:
+                continue
+            level = np.median(dst[inner].astype(float), axis=0)
+            want = prof.sigma_at(level[None])[0]
+            got = np.array([robust_sigma(dst[..., c], inner) for c in range(3)])
+            noise.append(float(np.median(got / np.maximum(want, 1e-6))))
+            s_obj, s_real = sharpness_inside_outside(dst, (0, 0, W, H), mask.astype(np.float32))
+            if np.isfinite(s_obj) and np.isfinite(s_real) and s_real > 0:
+                sharp.append(s_obj / s_real)
+    res = {
+        "views": len(noise),
+        "noise_ratio_median": float(np.median(noise)) if noise else float("nan"),
+        "noise_ratio_range": [float(np.min(noise)), float(np.max(noise))] if noise else [],
+        "sharpness_ratio_median": float(np.median(sharp)) if sharp else float("nan"),
+        "sharpness_ratio_range": [float(np.min(sharp)), float(np.max(sharp))] if sharp else [],
+    }
+    print(f"\ncamera look over {res['views']} object views (inside / around the object):")
+    print(f"  robust noise ratio: median {res['noise_ratio_median']:.3f}, range "
+          f"{np.round(res['noise_ratio_range'], 3).tolist()} (bound [0.8, 1.25])")  # fmt: skip
+    print(f"  edge sigma ratio:   median {res['sharpness_ratio_median']:.3f}, range "
+          f"{np.round(res['sharpness_ratio_range'], 3).tolist()}")  # fmt: skip
+    return res
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sequence", type=Path)
@@ -109,6 +174,7 @@ def main() -> int:
     ap.add_argument("--scratch", type=Path, default=Path("/tmp/osdar_bench_augment"))
     ap.add_argument("--origins", type=Path, default=None, help="per-sensor lidar_origins.json")
     ap.add_argument("--json", type=Path, default=None, help="write the results here")
+    ap.add_argument("--look-frames", type=int, default=6, help="frames for the look check (0: off)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
@@ -159,6 +225,7 @@ def main() -> int:
             f"  run {run + 1}: floor {floors[-1]:.2f} s, job {jobs[-1]:.2f} s "
             f"(frames {frame_walls[-1]:.2f} s), ratio {ratios[-1]:.3f}"
         )
+    look = look_check(seq, out, cams, args.look_frames) if args.look_frames > 0 else {}
     shutil.rmtree(args.scratch, ignore_errors=True)
     keys = [k for k, v in stage_runs[0].items() if isinstance(v, float)]
     med = {k: statistics.median(r.get(k, 0.0) for r in stage_runs) for k in keys}
@@ -179,6 +246,7 @@ def main() -> int:
             fw / fl for fw, fl in zip(frame_walls, floors, strict=True)
         ),
         "stages_median_s": med,
+        "look": look,
     }
     print(
         f"\nfloor {statistics.median(floors):.2f} s, job {statistics.median(jobs):.2f} s: "
