@@ -281,6 +281,17 @@ def test_sigkill_workers_at_random_points_loses_no_job(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_sigkill_workers_during_a_campaign_loses_no_variant_and_makes_none_twice(
+    tmp_path: Path,
+) -> None:
+    # unmarked reduced form: tests/campaign/test_service_campaigns.py (a redelivered
+    # expansion, a failing variant, an idempotent submit, in process)
+    f = _scenario("campaign_kill", tmp_path)
+    assert f["kills_by_stage"] and f["variants_made"] == f["variant_job_rows"] == 4
+    assert f["campaign_state"] == "PARTIAL" and f["submit_status_codes"] == {201: 1, 200: 19}
+
+
+@pytest.mark.slow
 def test_store_outage_during_publish_is_retried(tmp_path: Path) -> None:
     f = _scenario("store_outage", tmp_path)
     assert f["store_retries_total"] > 0 and f["partial_archives_visible"] == 0
@@ -317,6 +328,7 @@ FULL = [
     "hostile_uploads",
     "poison",
     "kill_workers",
+    "campaign_kill",
     "store_outage",
     "redis_restart",
     "db_restart",
