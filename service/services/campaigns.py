@@ -6,8 +6,9 @@ worker runs it (``osdar_ar.campaign_expand``: worker/campaign/service_expand.py)
 writes the variants and their jobs; the manifest is written by the worker when every
 variant has finished (worker/campaign/service_finalize.py). The API sends those tasks
 (:class:`~service.deps.Dispatcher`) and, when it sees a campaign whose message got lost
-(PENDING past the grace) or whose variants are all finished without a manifest, sends
-them again (:func:`nudge`): both tasks are idempotent.
+(PENDING past the grace, or EXPANDING without a heartbeat for longer than a task may run)
+or whose variants are all finished without a manifest, sends them again (:func:`nudge`,
+on every GET of the campaign): both tasks are idempotent.
 """
 
 from __future__ import annotations
@@ -359,6 +360,18 @@ def nudge(
             cut = now - timedelta(seconds=settings.reaper_orphan_grace_s)
             if updated_rows(session, update(Campaign).where(
                     Campaign.id == c.id, Campaign.state == CampaignState.PENDING,
+                    Campaign.updated_at < cut).values(updated_at=now)):  # fmt: skip
+                session.commit()
+                send_expand(c.id)
+        elif c.state == CampaignState.EXPANDING:
+            # the expansion beats its heart (stage, updated_at) as it prepares; silent for
+            # longer than any task may run, its worker died with the message unacknowledged
+            stale = settings.reaper_stale_after_s or (
+                settings.task_time_limit_s + settings.visibility_margin_s
+            )
+            cut = now - timedelta(seconds=stale)
+            if updated_rows(session, update(Campaign).where(
+                    Campaign.id == c.id, Campaign.state == CampaignState.EXPANDING,
                     Campaign.updated_at < cut).values(updated_at=now)):  # fmt: skip
                 session.commit()
                 send_expand(c.id)

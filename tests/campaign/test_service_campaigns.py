@@ -128,11 +128,13 @@ def test_a_dry_run_returns_the_embedded_expansion_and_queues_nothing(api: Api) -
     assert all(v["job_id"] is None for v in body["variants"])
     assert campaign_jobs(api, cid) == []
     # the same variants as the embedded expansion on the same preparation
-    folder = Path(api.client.get(f"/v1/sequences/{api.sequence_id}", headers=api.h())
-                  .json()["path"])  # fmt: skip
+    folder = Path(
+        api.client.get(f"/v1/sequences/{api.sequence_id}", headers=api.h()).json()["path"]
+    )
     prepared = prepare(folder, cache_dir=api.settings.prepared_cache_dir)
-    want = json.loads(dump_variants(expand(CampaignSpec.model_validate(spec(api)),
-                                           {api.sequence_id: prepared})))  # fmt: skip
+    want = json.loads(
+        dump_variants(expand(CampaignSpec.model_validate(spec(api)), {api.sequence_id: prepared}))
+    )
     got = [{k: v[k] for k in ("index", "id", "key", "objects")} for v in body["variants"]]
     assert got == [{k: w[k] for k in ("index", "id", "key", "objects")} for w in want]
     res = body["variants"][0]["objects"][0]["resolved"]
@@ -187,8 +189,13 @@ def test_a_campaign_runs_one_preparation_and_a_failing_variant_fails_alone(api: 
     m = api.client.get(detail["links"]["manifest_json"], headers=api.h())
     assert m.status_code == 200
     doc = m.json()
-    assert doc["summary"] == {"variants": 2, "done": 1, "failed": 1, "cancelled": 0,
-                              "state": "PARTIAL"}  # fmt: skip
+    assert doc["summary"] == {
+        "variants": 2,
+        "done": 1,
+        "failed": 1,
+        "cancelled": 0,
+        "state": "PARTIAL",
+    }
     row0 = doc["variants"][0]
     assert row0["state"] == "done" and row0["job_id"] == v0["job_id"]
     assert row0["gauge"] is not None and row0["archive_bytes"] > 0
@@ -246,8 +253,7 @@ def test_cancel_a_running_campaign_cancels_its_variant_jobs(api: Api) -> None:
 
 
 def test_a_campaign_whose_rule_cannot_be_placed_fails_with_the_issue(api: Api) -> None:
-    bad = spec(api, name="impossible",
-               placements=[{"zone": "platform", "distance_m": [20, 45]}])  # fmt: skip
+    bad = spec(api, name="impossible", placements=[{"zone": "platform", "distance_m": [20, 45]}])
     cid = api.client.post("/v1/campaigns", json=bad, headers=api.h()).json()["id"]
     out = expand_now(api, cid)
     assert out.state == CampaignState.FAILED and out.created == 0
@@ -284,8 +290,9 @@ def test_campaign_jobs_do_not_count_against_the_per_key_job_limit(api: Api) -> N
         with api.sessions.begin() as s:  # every other test's jobs as they were
             for job_id, state in before.items():
                 s.execute(update(Job).where(Job.id == job_id).values(state=state))
-            s.execute(update(Job).where(Job.id.not_in(list(before)))
-                      .values(state=JobState.CANCELLED))  # fmt: skip
+            s.execute(
+                update(Job).where(Job.id.not_in(list(before))).values(state=JobState.CANCELLED)
+            )
 
 
 def campaign_jobs_all(api: Api) -> list[Job]:
@@ -305,8 +312,11 @@ def live_url(api: Api) -> Iterator[str]:
     from worker.orchestration.embedded import free_port
 
     port = free_port()
-    server = uvicorn.Server(uvicorn.Config(api.client.app, host="127.0.0.1", port=port,
-                                           log_level="warning", lifespan="off"))  # fmt: skip
+    server = uvicorn.Server(
+        uvicorn.Config(
+            api.client.app, host="127.0.0.1", port=port, log_level="warning", lifespan="off"
+        )
+    )
     thread = threading.Thread(target=server.run, name="campaign-api", daemon=True)
     thread.start()
     deadline = time.monotonic() + 30
@@ -346,8 +356,10 @@ def test_cli_submit_resolves_paths_and_download_resumes(
     assert capsys.readouterr().out.strip().splitlines()[-1] == cid
     assert [t["args"] for t in sent_tasks()] == [[cid]]
     # bob has no such sequence: the CLI registers the folder for him
-    assert main(["campaign", "submit", str(spec_file), "--url", live_url, "--key",
-                 api.keys["bob"]]) == 0  # fmt: skip
+    assert (
+        main(["campaign", "submit", str(spec_file), "--url", live_url, "--key", api.keys["bob"]])
+        == 0
+    )
     bob_cid = capsys.readouterr().out.strip().splitlines()[-1]
     bob = api.client.get(f"/v1/campaigns/{bob_cid}", headers=api.h("bob")).json()
     assert bob["spec"]["sequences"][0]["id"] != api.sequence_id
@@ -394,9 +406,11 @@ def _dashboard(api: Api, secret: str) -> Any:
     page = client.get("/dashboard/login")
     token = re.search(r'name="token" value="([^"]+)"', page.text)
     assert token is not None, page.text
-    r = client.post("/dashboard/login", data={"api_key": secret, "token": token.group(1),
-                                               "next": "/dashboard/jobs"},
-                    follow_redirects=False)  # fmt: skip
+    r = client.post(
+        "/dashboard/login",
+        data={"api_key": secret, "token": token.group(1), "next": "/dashboard/jobs"},
+        follow_redirects=False,
+    )
     assert r.status_code == 303, r.text
     return client
 
@@ -469,3 +483,49 @@ def test_an_ordinary_key_sees_only_its_own_and_an_operator_sees_everything(api: 
     # the operator's role is for the dashboard: the API still scopes it to its own objects
     as_ops = {"Authorization": f"Bearer {secret}"}
     assert api.client.get(f"/v1/campaigns/{c['id']}", headers=as_ops).status_code == 404
+
+
+def test_a_lost_expansion_or_finalize_is_sent_again_when_the_campaign_is_read(api: Api) -> None:
+    from datetime import timedelta
+
+    from osdar_platform.models import Campaign, utcnow
+    from worker.orchestration.queue import TASK_FINALIZE_CAMPAIGN
+
+    ids = {}
+    for name in ("lost-pending", "lost-expanding", "fresh-expanding"):
+        r = api.client.post("/v1/campaigns", json=spec(api, name=name), headers=api.h())
+        ids[name] = r.json()["id"]
+    sent_tasks()
+    long_ago = utcnow() - timedelta(hours=10)  # past the grace and any task's time limit
+    with api.sessions.begin() as s:
+        for name, state in (
+            ("lost-pending", CampaignState.PENDING),
+            ("lost-expanding", CampaignState.EXPANDING),
+        ):
+            s.execute(
+                update(Campaign)
+                .where(Campaign.id == ids[name])
+                .values(state=state, updated_at=long_ago)
+            )
+        s.execute(
+            update(Campaign)
+            .where(Campaign.id == ids["fresh-expanding"])
+            .values(state=CampaignState.EXPANDING)
+        )
+    for name in ids:
+        api.client.get(f"/v1/campaigns/{ids[name]}", headers=api.h())
+        api.client.get(f"/v1/campaigns/{ids[name]}", headers=api.h())  # a second read: no resend
+    sent = sent_tasks()
+    assert sorted(t["args"][0] for t in sent) == sorted(
+        [ids["lost-pending"], ids["lost-expanding"]]
+    )
+    assert {t["task"] for t in sent} == {TASK_EXPAND_CAMPAIGN}
+    # a RUNNING campaign whose variants all ended without a finalize: sent once
+    expand_now(api, ids["lost-pending"])
+    sent_tasks()
+    for job in campaign_jobs(api, ids["lost-pending"]):
+        api.client.post(f"/v1/jobs/{job.id}/cancel", headers=api.h())
+    sent_tasks()
+    api.client.get(f"/v1/campaigns/{ids['lost-pending']}", headers=api.h())
+    api.client.get(f"/v1/campaigns/{ids['lost-pending']}", headers=api.h())
+    assert [t["task"] for t in sent_tasks()] == [TASK_FINALIZE_CAMPAIGN]
