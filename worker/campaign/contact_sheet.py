@@ -73,14 +73,14 @@ def contact_frame(
     if frames:
         f = max(frames, key=lambda k: sum(b[k][2] * b[k][3] for b in per if k in b))
         boxes = [tuple(b[f]) for b in per if f in b]
-        bbox: tuple[float, float, float, float] | None = boxes[0]  # type: ignore[assignment]
+        bbox: tuple[float, float, float, float] | None = boxes[0]
     else:
         all_frames = seq.frame_indices
         f, bbox, boxes = all_frames[len(all_frames) // 2], None, []
     img = np.asarray(seq.image(f, camera))
     if img.ndim == 2:
         img = np.repeat(img[:, :, None], 3, axis=2)
-    return ContactFrame(f, camera, img.astype(np.uint8), bbox, boxes)  # type: ignore[arg-type]
+    return ContactFrame(f, camera, img.astype(np.uint8), bbox, boxes)
 
 
 def thumbnail(frame: ContactFrame, width: int = THUMB_WIDTH_PX) -> Image.Image:
