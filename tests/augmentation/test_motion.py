@@ -212,3 +212,27 @@ def test_the_walkers_gauge_label_follows_it_frame_by_frame(walk) -> None:
     assert not any(g[f].intrusion for f in plan.frames) and np.all(lat > 0)
     slope = np.polyfit(t - t[0], lat, 1)[0]
     assert abs(slope + SPEED) < 2 * 0.08 / (t[-1] - t[0]), slope
+
+
+def test_a_world_path_is_walked_at_its_speed_and_bounces(walk) -> None:
+    """A cow wandering in world coordinates, there and back (``end: bounce``): its pose at
+    each lidar timestamp is the path point speed x elapsed time along, heading along."""
+    seq, truth, plan0, _, _ = walk
+    lidar = _times(seq, "lidar")
+    t0 = lidar[plan0.frames[0]]
+    p0 = plan0.objects[0].pose("lidar", plan0.frames[0])[:2, 3]
+    a, b = p0 + np.array([3.0, 0.0]), p0 + np.array([3.3, 0.0])  # 0.3 m: it turns back
+    cow = SceneObject(
+        object=ObjectSource(builtin="cow"),
+        motion=MotionModel(mode="world", path=(tuple(a), tuple(b)), speed_mps=0.8, end="bounce"),
+    )
+    plan = plan_augmentation(seq, AugmentSpec(objects=(cow,)), truth)
+    for f in plan.frames:
+        d = 0.8 * (lidar[f] - t0) % 0.6
+        along = d if d <= 0.3 else 0.6 - d
+        T = plan.objects[0].pose("lidar", f)
+        assert np.linalg.norm(T[:2, 3] - (a + np.array([along, 0.0]))) < 1e-6, f
+        heading = np.degrees(np.arctan2(T[1, 0], T[0, 0]))
+        wrapped = (heading - (0.0 if d <= 0.3 else 180.0) + 180.0) % 360.0 - 180.0
+        assert abs(wrapped) < 1e-6, (f, heading)
+    assert plan.objects[0].phases is None  # a cow slides: no gait
