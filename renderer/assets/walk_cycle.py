@@ -16,6 +16,13 @@ Weights blend over a few centimetres (smoothstep) at the hips and the armpits, s
 surface stays closed. The phase advances one full cycle (two steps) per
 ``STRIDE_PER_HEIGHT * H`` metres walked (about 1.4 m for a 1.75 m person, a normal gait).
 Amplitudes: legs +-22 deg at the hip, up to 35 deg at the knee, arms +-18 deg.
+
+The quadrupeds (cow, horse, elephant: :func:`quadruped_walk_pose`) swing their legs in
+diagonal pairs (left fore with right hind), +-18 deg about a joint 0.15 H above the belly,
+one cycle per ``STRIDE_PER_LENGTH`` body lengths. A leg is what stands below the belly
+(the lowest point between the fore and hind legs) within its foot's column; the tail and
+an elephant's trunk, outside the columns, stay as built. :func:`gait_pose` picks the
+cycle by the mesh's class.
 """
 
 from __future__ import annotations
@@ -32,6 +39,11 @@ F64 = NDArray[np.float64]
 
 #: One full cycle (left and right step) per this many body heights walked.
 STRIDE_PER_HEIGHT = 0.8
+#: A quadruped's full cycle per this many body lengths walked.
+STRIDE_PER_LENGTH = 0.6
+QUADRUPED_SWING_DEG = 18.0
+#: The classes with a walk cycle.
+WALKERS = ("person", "cow", "horse", "elephant")
 LEG_SWING_DEG = 22.0
 KNEE_FLEX_DEG = 35.0
 ARM_SWING_DEG = 18.0
@@ -122,4 +134,79 @@ def walk_pose(mesh: ObjectMesh, phase: float) -> ObjectMesh:
     return posed
 
 
-__all__ = ["STRIDE_PER_HEIGHT", "gait_phase", "walk_pose"]
+def quadruped_phase(distance_m: float, length_m: float) -> float:
+    """The cycle's phase (rad) after ``distance_m`` walked by an animal ``length_m`` long."""
+    stride = STRIDE_PER_LENGTH * max(float(length_m), 0.1)
+    return 2.0 * math.pi * float(distance_m) / stride
+
+
+def quadruped_walk_pose(mesh: ObjectMesh, phase: float) -> ObjectMesh:
+    """A quadruped ``mesh`` (rest pose, facing +x, feet on its lowest z) posed at ``phase``
+    (rad) of its cycle (module docstring). Returns a new ObjectMesh."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    z0 = float(v[:, 2].min())
+    H = float(v[:, 2].max() - z0)
+    z = v[:, 2] - z0
+    feet = z < 0.06 * H
+    if not np.any(feet):
+        return mesh
+    fx = v[feet, 0]
+    split = 0.5 * (fx.min() + fx.max())
+    fore, hind = fx[fx > split], fx[fx <= split]
+    if len(fore) == 0 or len(hind) == 0:
+        return mesh
+    margin = 0.25 * max(np.ptp(fore), np.ptp(hind)) + 0.02 * H
+    between = (v[:, 0] > hind.max() + margin) & (v[:, 0] < fore.min() - margin)
+    belly = float(z[between].min()) if np.any(between) else 0.5 * H
+    pivot_z = z0 + belly + 0.15 * H
+    w_z = _smoothstep(belly + 0.04 * H, belly - 0.02 * H, z)
+    side = np.where(v[:, 1] >= 0.0, 1.0, -1.0)
+    p = v.copy()
+    sw = math.radians(QUADRUPED_SWING_DEG) * math.sin(phase)
+    for cols, sign_fore in ((fore, 1.0), (hind, -1.0)):
+        in_col = (v[:, 0] >= cols.min() - margin) & (v[:, 0] <= cols.max() + margin)
+        w = w_z * in_col
+        if not np.any(w > 0):
+            continue
+        x_joint = 0.5 * (cols.min() + cols.max())
+        pivot = np.column_stack([np.full(len(v), x_joint), v[:, 1], np.full(len(v), pivot_z)])
+        # diagonal pairs: left fore and right hind lead together
+        fwd = sw * side * sign_fore
+        p = _turn(p, pivot, -fwd * w)
+    p[:, 2] -= p[:, 2].min() - z0
+    meta = dict(mesh.meta)
+    meta["gait_phase"] = float(phase)
+    posed = dataclasses.replace(mesh, vertices=p, meta=meta)
+    if getattr(posed, "normals", None) is not None:
+        posed.normals = None
+    return posed
+
+
+def gait_phase_of(mesh: ObjectMesh, distance_m: float) -> float:
+    """The phase (rad) of ``mesh``'s cycle after ``distance_m`` walked (by its class)."""
+    if mesh.meta.get("class") == "person":
+        return gait_phase(distance_m, float(mesh.size[2]))
+    return quadruped_phase(distance_m, float(mesh.size[0]))
+
+
+def gait_pose(mesh: ObjectMesh, phase: float) -> ObjectMesh:
+    """``mesh`` posed at ``phase`` of its class's cycle (the rest mesh for other classes)."""
+    cls = mesh.meta.get("class")
+    if cls == "person":
+        return walk_pose(mesh, phase)
+    if cls in WALKERS:
+        return quadruped_walk_pose(mesh, phase)
+    return mesh
+
+
+__all__ = [
+    "STRIDE_PER_HEIGHT",
+    "STRIDE_PER_LENGTH",
+    "WALKERS",
+    "gait_phase",
+    "gait_phase_of",
+    "gait_pose",
+    "quadruped_phase",
+    "quadruped_walk_pose",
+    "walk_pose",
+]

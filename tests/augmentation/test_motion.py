@@ -216,7 +216,8 @@ def test_the_walkers_gauge_label_follows_it_frame_by_frame(walk) -> None:
 
 def test_a_world_path_is_walked_at_its_speed_and_bounces(walk) -> None:
     """A cow wandering in world coordinates, there and back (``end: bounce``): its pose at
-    each lidar timestamp is the path point speed x elapsed time along, heading along."""
+    each lidar timestamp is the path point speed x elapsed time along, heading along, and
+    its legs swing with the distance walked."""
     seq, truth, plan0, _, _ = walk
     lidar = _times(seq, "lidar")
     t0 = lidar[plan0.frames[0]]
@@ -235,4 +236,9 @@ def test_a_world_path_is_walked_at_its_speed_and_bounces(walk) -> None:
         heading = np.degrees(np.arctan2(T[1, 0], T[0, 0]))
         wrapped = (heading - (0.0 if d <= 0.3 else 180.0) + 180.0) % 360.0 - 180.0
         assert abs(wrapped) < 1e-6, (f, heading)
-    assert plan.objects[0].phases is None  # a cow slides: no gait
+    # the cow walks: its legs' phase follows the distance walked (one cycle per 0.6 lengths)
+    cow_plan = plan.objects[0]
+    length = float(cow_plan.obj_full.size[0])
+    for f in plan.frames:
+        walked = 0.8 * (lidar[f] - t0)
+        assert cow_plan.phases["lidar"][f] == pytest.approx(2 * np.pi * walked / (0.6 * length))

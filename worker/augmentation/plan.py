@@ -22,7 +22,7 @@ from geometry.camera import CameraModel, load_cameras
 from geometry.transforms import transform_points
 from renderer.assets import MeshError, build_obstacle, choose_detail, load_user_mesh, simplify
 from renderer.assets.lod import FACES_PER_PX
-from renderer.assets.walk_cycle import gait_phase, walk_pose
+from renderer.assets.walk_cycle import WALKERS, gait_phase_of, gait_pose
 from renderer.lidar_cast import origins_from_json
 from renderer.lighting import Lighting, estimate_lighting, sun_dir_enu
 from renderer.mesh import ObjectMesh, ProxyMesh
@@ -63,7 +63,8 @@ class PlannedObject:
     static object's only pose.
     poses : a moving object's stream -> frame -> (4, 4) pose at that stream's timestamp
     of the frame; None: static.
-    phases : stream -> frame -> walk-cycle phase (rad) of a walking person; None: rigid.
+    phases : stream -> frame -> walk-cycle phase (rad) of a walking person or animal
+    (renderer/assets/walk_cycle.py); None: rigid.
     velocity_world : frame -> (3,) m/s over the ground at the lidar timestamp (a moving
     object's; empty: static).
     gauge : frame -> the object against the train's clearance envelope (gauge.py).
@@ -99,7 +100,7 @@ class PlannedObject:
         base = self.obj_full if full else self.obj_render
         if self.phases is None:
             return base
-        return walk_pose(base, self.phases[stream][frame])
+        return gait_pose(base, self.phases[stream][frame])
 
     def velocity(self, frame: int) -> F64:
         """(3,) world velocity (m/s) at the lidar timestamp of ``frame``."""
@@ -589,14 +590,14 @@ def _planned_object(
             walked.setdefault(st, {})[f] = float(mv.walked_m[k])
             if st == clock:
                 velocity[f] = mv.velocity_world[k]
-        walks = obj.meta.get("class") == "person" and obj.meta.get("pose", "standing") in (
+        # a built-in person standing or walking, or a built-in animal, walks
+        walks = obj.meta.get("class") in WALKERS and obj.meta.get("pose", "standing") in (
             "standing",
             "walking",
         )
         if so.motion.gait and so.object.builtin is not None and walks:
-            h = float(obj.size[2])
             phases = {
-                st: {f: gait_phase(d, h) for f, d in per.items()} for st, per in walked.items()
+                st: {f: gait_phase_of(obj, d) for f, d in per.items()} for st, per in walked.items()
             }
         positions = mv.T_world_obj[:: max(1, len(mv.T_world_obj) // 8), :3, 3]
         surface = "proxy"

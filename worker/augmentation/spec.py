@@ -160,8 +160,9 @@ class MotionModel(_Section):
     end : at the last waypoint ``stop`` (stand there) or ``bounce`` (walk back, and so on).
     yaw_deg : the object's heading relative to its direction of travel (0: its +x, the
         front of the built-ins, leads).
-    gait : the built-in person swings legs and arms in step with the distance walked
-        (renderer/assets/walk_cycle.py); other objects are rigid.
+    gait : the built-in person swings legs and arms, the built-in animals their legs, in
+        step with the distance walked (renderer/assets/walk_cycle.py); other objects (and
+        a person lying, crouching or sitting) are rigid.
     """
 
     mode: Literal["track", "world"] = "track"
