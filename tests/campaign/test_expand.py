@@ -223,3 +223,43 @@ def test_pieces_of_one_platform_are_joined() -> None:
     fp = Footprint((-0.3, 0.3), (-0.3, 0.3), 1.8)
     assert "across the edge" in str(geom.conflict(Placed(fp, 150.0, -1.9, 0.0), clearance=0.1))
     assert geom.conflict(Placed(fp, 150.0, -4.0, 0.0), clearance=0.1, zone="platform") is None
+
+
+def test_moving_obstacles_walk_through_their_drawn_position(straight) -> None:
+    """A crossing walker's path runs across the track through its drawn (s, offset), an
+    along-walker's along it; speeds and starts in their ranges; no path position meets
+    the pole or the platform, and a later object keeps min_spacing from every one."""
+    spec = _spec(
+        draws=6, objects_per_sequence=2,
+        obstacles=[{"builtin": "person", "motion": {"pattern": "cross", "span_m": 6,
+                                                    "speed_mps": [1.0, 1.5],
+                                                    "start_s": [0.0, 2.0]}},
+                   {"builtin": "cow", "motion": {"pattern": "along", "span_m": 4,
+                                                 "speed_mps": [0.4, 0.4]}}],
+        placements=[{"zone": "track", "distance_m": [30, 200]}],
+        constraints={"min_spacing_m": 3.0},
+    )  # fmt: skip
+    variants = expand(spec, {KEY: straight})
+    assert len(variants) == 6
+    for v in variants:
+        walker, cow = v.objects
+        for o, half in ((walker, 3.0), (cow, 2.0)):
+            r, m = o.resolved, o.motion
+            assert m is not None and m["mode"] == "track"
+            (s_a, l_a), (s_b, l_b) = m["path"]
+            mid = (0.5 * (s_a + s_b), 0.5 * (l_a + l_b))
+            assert mid == pytest.approx((r.s_job_m, r.offset_m), abs=2e-3)
+            if o is walker:
+                assert s_a == s_b and abs(l_b - l_a) == pytest.approx(2 * half)
+                assert 1.0 <= m["speed_mps"] <= 1.5 and 0.0 <= m["start_s"] <= 2.0
+            else:
+                assert l_a == l_b and abs(s_b - s_a) == pytest.approx(2 * half)
+                assert m["speed_mps"] == 0.4 and m["start_s"] == 0.0
+        assert v.job["objects"][0]["motion"] == walker.motion
+        # every position of the walker's path against the pole (x 90 m, y 2.4 m, r 0.15)
+        # and the platform (s 150-260, right): the walker crosses neither
+        (s_a, l_a), (s_b, l_b) = walker.motion["path"]
+        s_abs = FIRST_X + s_a
+        assert not (150.0 - 0.5 <= s_abs <= 260.0 + 0.5 and min(l_a, l_b) < -1.75 + 0.5)
+        ys = np.linspace(l_a, l_b, 50)
+        assert np.min(np.hypot(s_abs - 90.0, ys - 2.4)) > 0.15 + 0.1
