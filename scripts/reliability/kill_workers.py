@@ -5,8 +5,9 @@ is killed once at a uniformly random moment of its run (measured on a clean job 
 - "child": SIGKILL of the pool process running the task; the parent sees the loss,
   ``task_reject_on_worker_lost`` puts the message back and it runs again at once;
 - "worker": SIGKILL of the whole worker (parent and children, like an OOM-killed
-  container); a new worker starts; the unacknowledged message comes back after the
-  visibility timeout (short here: 22 s).
+  container); a new worker starts; the reaper re-queues the job when the killed stage's
+  lease expires (10 s here: a new attempt), or, when the kill hit no leased stage, the
+  unacknowledged message comes back after the visibility timeout (short here: 22 s).
 A client polls every job's archive and state throughout (premature archives: 0), and
 busy-looping processes load the machine (one in the reduced form, one per core in full).
 Figures: jobs lost (not SUCCEEDED), archives per job in the store (exactly 1, the

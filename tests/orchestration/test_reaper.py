@@ -269,6 +269,9 @@ def test_a_lost_broker_is_seen_from_the_sentinel(settings: Settings) -> None:
     _set(settings, running, state=JobState.RUNNING, attempt=1, broker_seen_at=sent_before,
          updated_at=utcnow())  # fmt: skip
     _set(settings, after, updated_at=epoch.since + timedelta(seconds=30))  # after: it is there
+    # the API could not send this one (broker down): sent by the sweep, under the sentinel
+    (pending,) = _jobs(settings, 1, state=JobState.PENDING)
+    _set(settings, pending, created_at=utcnow() - timedelta(seconds=200))
     app = memory_celery()
     sent_tasks()
     report = reap(redis_settings, app)
@@ -276,8 +279,10 @@ def test_a_lost_broker_is_seen_from_the_sentinel(settings: Settings) -> None:
     assert sorted(report.requeued) == sorted([before, running])
     why = f"broker lost its data: its sentinel {epoch.token[:8]}"
     assert report.reasons[before].startswith(why)
-    assert sorted(t["id"] for t in sent_tasks()) == sorted([before, running])
+    assert report.pending_sent == [pending]
+    assert sorted(t["id"] for t in sent_tasks()) == sorted([before, running, pending])
     assert _row(settings, before).broker_run_id == epoch.token  # sent under this sentinel
+    assert _row(settings, pending).broker_run_id == epoch.token
     assert _row(settings, after).state == JobState.QUEUED and _row(settings, after).stage is None
     # the next sweep finds the re-sent jobs covered, though within the margin of the loss
     assert reap(redis_settings, app).requeued == [] and sent_tasks() == []
@@ -285,6 +290,6 @@ def test_a_lost_broker_is_seen_from_the_sentinel(settings: Settings) -> None:
     client.delete(SENTINEL_KEY)
     report = reap(redis_settings, app)
     assert report.broker is not None and report.broker.written
-    assert sorted(report.requeued) == sorted([before, running, after])
+    assert sorted(report.requeued) == sorted([before, running, after, pending])
     assert reap(redis_settings, app).requeued == []
     client.delete(SENTINEL_KEY)

@@ -307,6 +307,16 @@ def _requeue(
     return "requeued"
 
 
+def _stamp(sessions: Any, ids: list[str], epoch: BrokerEpoch) -> None:
+    """Jobs just sent (QUEUED) were sent under this sentinel: not "before it" next sweep."""
+    with sessions.begin() as s:
+        s.execute(
+            update(Job)
+            .where(Job.id.in_(ids), Job.state == JobState.QUEUED, Job.broker_run_id.is_(None))
+            .values(broker_run_id=epoch.token, updated_at=Job.updated_at)
+        )
+
+
 def _active_jobs(s: Any, now: datetime, epoch: BrokerEpoch | None, settings: Settings) -> Any:
     """The jobs a rule could apply to: every RUNNING one; QUEUED ones only when handed to
     the broker before its sentinel was written (and not re-sent under it by a reaper)."""
@@ -380,6 +390,8 @@ def reap(
         report.pending_sent = requeue_pending(
             older_than_s=settings.reaper_orphan_grace_s, sessions=sessions, app=app
         )
+        if report.pending_sent and report.broker is not None:
+            _stamp(sessions, report.pending_sent, report.broker)
     finally:
         if engine is not None:
             engine.dispose()
