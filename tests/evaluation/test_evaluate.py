@@ -20,6 +20,7 @@ from worker.evaluation.evaluate import (
     _jitter,
     cloud_for_track,
     evaluate_strategies,
+    lidar_support,
     summarize_rpe,
     synthetic_clicks,
 )
@@ -87,6 +88,31 @@ def test_synthetic_clicks_are_30_to_80_m_ahead(seq: Path) -> None:
         for f in clicks[0].uv[cam]
     ]
     assert 0.5 < np.mean(d) < 5.0
+
+
+def test_only_landmarks_the_lidar_measured_are_clicked(seq: Path) -> None:
+    """lidar_support is the distance to the nearest return of any frame (true poses); the
+    synthetic operator clicks only landmarks with one within 0.25 m (none within 1 mm)."""
+    from worker.preparation.frame_clouds import FrameClouds
+    from worker.preparation.registration import register_clouds
+
+    s = Sequence.open(seq)
+    truth = PoseTrack.from_csv(seq / "ground_truth/poses.csv")
+    lms = json.loads((seq / "ground_truth/landmarks.json").read_text())
+    xyz = np.array([lm["xyz"] for lm in lms], dtype=np.float64)
+    got = lidar_support(FrameClouds(s, max_range=120.0), truth, xyz)
+    full = register_clouds(s, truth, voxel_size=0.0, max_range=120.0).xyz
+    brute = np.array([np.min(np.linalg.norm(full - p, axis=1)) for p in xyz])
+    near = brute <= 2.0
+    assert near.any() and (~near).any()  # the test means something both ways
+    np.testing.assert_allclose(got[near], brute[near], atol=1e-5)  # float32 points
+    assert np.all(np.isinf(got[~near]))
+    clicked = {c.landmark for c in synthetic_clicks(seq, CAMS)}
+    supported = {lm["id"] for lm, d in zip(lms, got, strict=True) if d <= 0.25}
+    assert clicked and clicked <= supported
+    unsupported_in_view = {c.landmark for c in synthetic_clicks(seq, CAMS, lidar_support_m=0.0)}
+    assert clicked == unsupported_in_view & supported
+    assert not synthetic_clicks(seq, CAMS, lidar_support_m=1e-3)
 
 
 def test_rpe_with_true_poses_is_small_and_grows_with_a_jump(seq: Path, truth_tracks) -> None:

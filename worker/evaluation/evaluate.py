@@ -22,9 +22,10 @@ rule made robust over frames; the cloud is every frame's points, searched at ful
 near the click rays and around the point found, not only the voxel-filtered registered
 cloud of every ``frame_step``-th frame); RPE_i is the distance between the click of
 frame i and that point projected with frame i's pose at the camera's own timestamp;
-J_i = |RPE_{i+1} - RPE_i| between consecutive frame counters. Clicks come from a file (real data, formats in
-``calibration_point.py`` / the README) or, on synthetic sequences, from the ground truth:
-every landmark's true full-resolution pixel (optionally with Gaussian click noise) in the
+J_i = |RPE_{i+1} - RPE_i| between consecutive frame counters. Clicks come from a file
+(real data, formats in ``calibration_point.py`` / the README) or, on synthetic sequences,
+from the ground truth: every landmark the lidar measured (a return within 0.25 m, true
+poses), its true full-resolution pixel (optionally with Gaussian click noise) in the
 frames where it is ``near``-``far`` m in front of the camera (default 30-80 m). Pixels are
 at the camera's full resolution. Means and standard deviations pool every observation of
 every landmark; ``landmark_mean`` is the mean over landmarks of their RPE means.
@@ -60,6 +61,7 @@ import cv2
 import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
+from scipy.spatial import cKDTree
 
 from geometry.camera import CameraModel, load_cameras
 from geometry.geodesy import WorldFrame
@@ -274,6 +276,12 @@ DENSE_RADIUS_M = CalibrationConfig().dense_radius_m
 DENSE_MAX_RANGE_M = 120.0
 #: Radius (m) of the calibration sphere drawn in the overlays.
 SPHERE_RADIUS_M = 0.25
+#: Synthetic clicks go to landmarks with a lidar return (true poses) within this distance
+#: (m): the calibration sphere's radius, a point on the landmark's own object (a pole top's
+#: rim is 0.12 m from its axis).
+LIDAR_SUPPORT_M = SPHERE_RADIUS_M
+#: How far :func:`lidar_support` looks for a return (m).
+SUPPORT_SEARCH_M = 2.0
 
 
 def _camera_times(seq: Any, camera: str) -> dict[int, float]:
@@ -337,10 +345,19 @@ def synthetic_clicks(
     seed: int = 0,
     max_landmarks: int = 8,
     min_views: int = MIN_VIEWS,
+    lidar_support_m: float = LIDAR_SUPPORT_M,
+    clouds: Any = None,
 ) -> list[Any]:
     """Clicks from the ground truth of a synthetic sequence: one :class:`Clicks` per
     landmark, its true full-resolution pixel in every frame where it is ``near``-``far``
-    m in front of the camera (true pose at the camera's timestamp), plus N(0, noise^2)."""
+    m in front of the camera (true pose at the camera's timestamp), plus N(0, noise^2).
+
+    Only landmarks the lidar measured are clicked: a return of some frame (true poses, full
+    density) within ``lidar_support_m`` of the landmark (0: every landmark). The paper's
+    operator clicks a landmark seen in both the image and the cloud; a pole top no beam
+    ever hit has no calibration point, only points of other surfaces near its rays, and
+    its RPE with the true poses is tens of pixels (:func:`lidar_support`). ``clouds``: the
+    sequence's :class:`~worker.preparation.frame_clouds.FrameClouds` if already read."""
 
     folder = Path(seq_folder)
     gt = folder / "ground_truth"
@@ -349,6 +366,14 @@ def synthetic_clicks(
     truth = PoseTrack.from_csv(dense if dense.is_file() else gt / "poses.csv")
     cams = full_resolution_cameras(seq, cameras)
     landmarks = json.loads((gt / "landmarks.json").read_text())
+    if lidar_support_m > 0 and landmarks:
+        xyz = np.array([lm["xyz"] for lm in landmarks], dtype=np.float64).reshape(-1, 3)
+        d = lidar_support(clouds if clouds is not None else _frame_clouds(seq), truth, xyz)
+        unmeasured = [lm["id"] for lm, di in zip(landmarks, d, strict=True) if di > lidar_support_m]
+        if unmeasured:
+            log.debug("landmarks no lidar return came within %.2f m of, not clicked: %s",
+                     lidar_support_m, ", ".join(unmeasured))  # fmt: skip
+        landmarks = [lm for lm, di in zip(landmarks, d, strict=True) if di <= lidar_support_m]
     rng = np.random.default_rng(seed)
     scored = []
     for lm in landmarks:
@@ -376,6 +401,23 @@ def synthetic_clicks(
             scored.append((sum(len(v) for v in uv.values()), Clicks(lm["id"], uv, res)))
     scored.sort(key=lambda x: -x[0])
     return [c for _, c in scored[:max_landmarks]]
+
+
+def lidar_support(clouds: Any, track: Any, xyz_world: np.ndarray) -> np.ndarray:
+    """(m,) distance (m) from each landmark (m, 3) to the nearest lidar return of any frame
+    of ``clouds`` (full density as read), registered with ``track`` (inf: none within
+    :data:`SUPPORT_SEARCH_M`)."""
+    best = np.full(len(xyz_world), np.inf)
+    frames = clouds.frames
+    if not frames or not len(xyz_world):
+        return best
+    T_all = track.interpolate(np.array([clouds.frame_times[f] for f in frames]))
+    for f, T in zip(frames, T_all, strict=True):
+        lm_base = (xyz_world - T[:3, 3]) @ T[:3, :3]  # the landmarks in the frame's base
+        d, i = cKDTree(lm_base).query(clouds.get(f).p_base32, distance_upper_bound=SUPPORT_SEARCH_M)
+        hit = np.isfinite(d)
+        np.minimum.at(best, i[hit], d[hit])
+    return best
 
 
 def rpe_from_clicks(
@@ -556,6 +598,7 @@ def _clicks(
     click_noise_px: float,
     seed: int,
     max_landmarks: int,
+    clouds: Any = None,
 ) -> tuple[list[Any], str]:
     """The clicks (given, or synthetic from the ground truth) and their source; every
     camera they name must be in the sequence."""
@@ -567,7 +610,7 @@ def _clicks(
         cams_wanted = cameras or list(seq.cameras)
         clicks = synthetic_clicks(
             folder, cams_wanted, near=near, far=far, click_noise_px=click_noise_px,
-            seed=seed, max_landmarks=max_landmarks,
+            seed=seed, max_landmarks=max_landmarks, clouds=clouds,
         )  # fmt: skip
     missing = sorted({c for cl in clicks for c in cl.uv} - set(seq.cameras))
     if missing:
@@ -661,9 +704,10 @@ def evaluate_strategies(
     folder = Path(seq_folder)
     seq = Sequence.open(folder)
     has_gt = (folder / "ground_truth" / "landmarks.json").is_file()
+    clouds = _frame_clouds(seq) if dense_radius_m > 0 or (clicks is None and has_gt) else None
     clicks, source = _clicks(
         folder, seq, clicks, cameras, has_gt=has_gt, near=near, far=far,
-        click_noise_px=click_noise_px, seed=seed, max_landmarks=max_landmarks,
+        click_noise_px=click_noise_px, seed=seed, max_landmarks=max_landmarks, clouds=clouds,
     )  # fmt: skip
     if cameras is None:
         cameras = sorted({c for cl in clicks for c in cl.uv})
@@ -684,7 +728,7 @@ def evaluate_strategies(
     }
 
     rows: list[dict[str, Any]] = []
-    clouds = _frame_clouds(seq) if dense_radius_m > 0 else None
+    clouds = clouds if dense_radius_m > 0 else None
     for strategy, (track, xyz) in tracks.items():
         dense = rays = None
         if clouds is not None:
