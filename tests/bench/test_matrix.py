@@ -21,6 +21,7 @@ from worker.bench.matrix import (
     design,
     format_summary,
     plot_heatmap,
+    plot_paper_floor,
     run_matrix,
 )
 
@@ -84,6 +85,23 @@ def test_summary_reports_every_goal_and_a_heatmap(small_run: dict, tmp_path: Pat
     json.dumps(small_run)  # JSON-able
     png = plot_heatmap(small_run, tmp_path / "m.png")
     assert png.stat().st_size > 1000
+
+
+def test_the_paper_rpe_floor_is_the_same_measure_with_the_true_poses(
+    small_run: dict, tmp_path: Path
+) -> None:
+    """The floor is the paper measure on the same clicks with the true poses: a point
+    fixed in the world seen from a standing train's true poses keeps its offset from the
+    clicks, so its jitter there is nil (the offset itself is the cloud's sampling)."""
+    c2 = "rgb_highres_center"
+    for c in small_run["cells"]:
+        floor, auto = c["paper_floor"][c2], c["strategies"]["auto"]["paper"][c2]
+        assert floor["n"] == auto["n"] > 0 and floor["rpe_mean"] >= 0.0
+    still = next(c for c in small_run["cells"] if c["cell"]["motion"] == "stationary")
+    assert still["paper_floor"][c2]["jitter_mean"] < 0.05
+    g = small_run["summary"]["goals"]["short_c2_rpe_p90_px"]
+    assert g["floor_p90"] is not None and isinstance(g["cells_floor_above_bound"], list)
+    assert plot_paper_floor(small_run, tmp_path / "f.png").stat().st_size > 1000
 
 
 @pytest.mark.slow
