@@ -23,7 +23,7 @@ from worker.augmentation.finish import finish_augmentation
 from worker.augmentation.frame import augment_frames
 from worker.augmentation.placement import PlacementError
 from worker.augmentation.plan import plan_augmentation
-from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel
+from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel, RenderSpec
 from worker.cli import main
 from worker.evaluation.object_error import truth_prepared
 from worker.osdar.pcd import read_pcd
@@ -67,7 +67,12 @@ def _run(seq: Path, truth, spec: AugmentSpec, scratch: Path):
 @pytest.fixture(scope="module")
 def truth_run(seq: Path, truth, tmp_path_factory: pytest.TempPathFactory):
     base = tmp_path_factory.mktemp("truth_run")
-    plan, chunk = _run(seq, truth, _spec(seq, "s=22,offset=0,yaw=90"), base / "scratch")
+    # the lidar noise off: the object points must lie exactly on the surface (the noise
+    # is tested in test_frame.py)
+    spec = _spec(seq, "s=22,offset=0,yaw=90").model_copy(
+        update={"render": RenderSpec(lidar_noise=False)}
+    )
+    plan, chunk = _run(seq, truth, spec, base / "scratch")
     metrics = finish_augmentation(plan, [chunk], base / "fire_aug_person")
     return plan, chunk, metrics, base / "fire_aug_person"
 
@@ -190,6 +195,24 @@ def test_output_sequence_is_complete_and_loads(seq: Path, truth_run) -> None:
     for e in m["object_errors"]["cameras"].values():
         assert e["anchor_px_max"] < 0.5 and e["mask_iou_min"] > 0.95
     assert "frames_render" in m["timings_s"] and metrics["lidar"]["object_points_total"] > 0
+
+
+def test_the_labels_say_which_builtin_was_placed(truth_run) -> None:
+    """Every element of the placed person carries its seed, pose and variant."""
+    plan, _, _, out = truth_run
+    raw = json.loads((out / "fire_aug_person_labels.json").read_text())["openlabel"]
+    oid = next(k for k, o in raw["objects"].items() if "_synthetic_" in o["name"])
+    meta = plan.obj_full.meta
+    want = {"osdarArSeed": str(meta["seed"]), "osdarArPose": meta["pose"],
+            "osdarArVariant": meta["variant"]}  # fmt: skip
+    n = 0
+    for fd in raw["frames"].values():
+        for kind, elems in fd.get("objects", {}).get(oid, {}).get("object_data", {}).items():
+            for e in elems:
+                text = {t["name"]: t["val"] for t in e["attributes"]["text"]}
+                assert {k: text.get(k) for k in want} == want, kind
+                n += 1
+    assert n > 0
 
 
 # ---------------------------------------------------------------------------- CLI

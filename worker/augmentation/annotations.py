@@ -5,7 +5,9 @@ the object; per camera where the object is visible: a ``bbox`` [x_center, y_cent
 height] and a closed ``poly2d`` outline of the visible mask. Names follow OSDaR23:
 ``<sensor>__<kind>__<class>``. Attributes: ``occlusion`` (OSDaR23's buckets), truncation
 flags, and provenance (``isSynthetic`` true, ``generator`` osdar-ar, ``osdarArClass``, the
-exact obstacle). OSDaR23 has no class for rocks or fallen trees: they are typed
+exact obstacle; for a built-in obstacle also the text attributes ``osdarArSeed`` (the seed
+its shape and colours were drawn from), ``osdarArPose`` and ``osdarArVariant``: with the
+class they rebuild the same mesh). OSDaR23 has no class for rocks or fallen trees: they are typed
 ``obstacle`` (animals ``animal``, people ``person``), the exact class in ``osdarArClass``.
 
 Gauge labels (:mod:`~worker.augmentation.gauge`), on every element of the frame when the
@@ -83,6 +85,21 @@ VISIBLE_PIXELS_ATTRIBUTE = "visiblePixels"
 #: Motion: vec (m/s, lidar frame axes) and num (m/s) on the cuboid and the lidar vec.
 VELOCITY_ATTRIBUTE = "velocity"
 SPEED_ATTRIBUTE = "speedMps"
+
+# Provenance of a built-in obstacle (text attributes): the ``mesh.meta`` keys they carry.
+BUILTIN_PROVENANCE = {"seed": "osdarArSeed", "pose": "osdarArPose", "variant": "osdarArVariant"}
+
+
+def builtin_provenance(meta: dict[str, Any]) -> dict[str, str]:
+    """The provenance text attributes of a built-in obstacle from its ``mesh.meta``
+    (``renderer.assets.obstacles``: ``seed``, ``pose``, ``variant``); keys the mesh does
+    not have, or that are not a plain value (an uploaded mesh's pose dict), are left out."""
+    out = {}
+    for key, name in BUILTIN_PROVENANCE.items():
+        v = meta.get(key)
+        if isinstance(v, (str, int)) and not isinstance(v, bool):
+            out[name] = str(v)
+    return out
 
 
 @dataclass
@@ -338,17 +355,20 @@ def add_object(
     frames: list[FrameAnnotation],
     seed: str = "osdar-ar",
     lidar_cs: str = "lidar",
+    attributes: dict[str, str] | None = None,
 ) -> str:
     """Add the object to an OpenLABEL dict in place; returns its UUID.
 
     Frames of ``frames`` must exist in the labels. The object's name is
     ``<class>_synthetic_<n>`` with n counting synthetic objects already present.
+    ``attributes`` : more provenance text attributes on every element (e.g.
+    :func:`builtin_provenance`).
     """
     ol = labels_raw["openlabel"]
     otype = osdar_type(obj_class)
     oid = str(uuid.uuid5(_NAMESPACE, f"{seed}/object"))
     n_existing = sum(1 for o in ol.get("objects", {}).values() if "_synthetic_" in o["name"])
-    provenance = {"generator": "osdar-ar", "osdarArClass": obj_class}
+    provenance = {"generator": "osdar-ar", "osdarArClass": obj_class, **(attributes or {})}
     pointers = _Pointers()
     for fa in frames:
         fkey = str(fa.frame_idx)

@@ -16,11 +16,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.augmentation.annotations import (
-    add_object,
-)
+from worker.augmentation.annotations import add_object, builtin_provenance
 from worker.augmentation.frame import STAGE_KEYS, ChunkResult, FrameRecord
-from worker.augmentation.plan import Plan
+from worker.augmentation.plan import Plan, PlannedObject
 from worker.evaluation.object_error import evaluate_object
 from worker.json_values import jsonable
 from worker.osdar.labels import load_labels
@@ -147,13 +145,21 @@ def _labels_with_object(
         anns_present = [a for a in anns if a is not None]
         oid = None
         if anns_present:
-            oid = add_object(labels, obj_class=obj.obj_class, frames=anns_present, seed=obj.seed)
+            oid = add_object(labels, obj_class=obj.obj_class, frames=anns_present, seed=obj.seed,
+                             attributes=_provenance(obj))  # fmt: skip
         else:
             what = "the object" if len(plan.objects) == 1 else f"object {k} ({obj.obj_class})"
             plan.warnings.append(f"{what} is visible in no frame: no annotation added")
         oids.append(oid)
         counts.append(len(anns_present))
     return labels, oids, counts
+
+
+def _provenance(obj: PlannedObject) -> dict[str, str]:
+    """A built-in obstacle's seed, pose and variant for its labels; nothing for an
+    uploaded mesh (its meta has no seed)."""
+    meta = obj.obj_full.meta
+    return builtin_provenance(meta) if "seed" in meta else {}
 
 
 def _metrics(
@@ -292,10 +298,37 @@ def _lidar_counts(plan: Plan, records: list[FrameRecord], k: int | None) -> dict
         return None
     ks = range(len(plan.objects)) if k is None else [k]
     pts = [sum(r.objects[j].lidar_points for j in ks) for r in records]
-    return {
+    out: dict[str, Any] = {
         "origins": plan.spec.lidar_origins,
         "frames_with_points": int(sum(p > 0 for p in pts)),
         "object_points_total": int(sum(pts)),
         "object_points_max": int(max(pts, default=0)),
         "candidate_rays_total": int(sum(r.lidar_candidates for r in records)),
     }
+    if k is None:
+        out["noise"] = _lidar_noise_summary(records)
+    return out
+
+
+def _lidar_noise_summary(records: list[FrameRecord]) -> dict[str, Any]:
+    """Per sensor_index, the range noise (m) and dropout the object points got, over the
+    frames where they were measured: median, min, max (the per-frame estimates are in
+    the chunk records, ``FrameRecord.lidar_noise``)."""
+    out: dict[str, Any] = {}
+    for s in sorted({s for r in records for s in r.lidar_noise}):
+        est = [r.lidar_noise[s] for r in records if s in r.lidar_noise]
+        sig = [e["range_sigma_m"] for e in est if np.isfinite(e["range_sigma_m"])]
+        drop = [e["dropout"] for e in est]
+        out[str(s)] = {
+            "frames": len(est),
+            "range_sigma_m": _spread(sig),
+            "dropout": _spread(drop),
+            "rings_median": float(np.median([e["rings"] for e in est])),
+        }
+    return out
+
+
+def _spread(v: list[float]) -> dict[str, float] | None:
+    if not v:
+        return None
+    return {"median": float(np.median(v)), "min": float(np.min(v)), "max": float(np.max(v))}

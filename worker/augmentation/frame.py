@@ -34,7 +34,13 @@ from numpy.typing import NDArray
 from geometry.camera import CameraModel
 from geometry.transforms import invert_T, transform_points
 from renderer.composite import composite
-from renderer.lidar_cast import cast_object, point_origins
+from renderer.lidar_cast import (
+    LidarCastResult,
+    LidarNoise,
+    cast_object,
+    estimate_lidar_noise,
+    point_origins,
+)
 from renderer.mesh import ObjectMesh, ProxyMesh
 from renderer.object_render import ObjectRenderer
 from worker.augmentation.annotations import (
@@ -115,13 +121,16 @@ class ObjectFrame:
 @dataclass
 class FrameRecord:
     """One frame's result: per object (the plan's order) an :class:`ObjectFrame`, the
-    lidar rays cast and per-stage seconds. ``annotation``, ``cameras`` and
-    ``lidar_points`` are the first object's (single-object readers)."""
+    lidar rays cast, per-stage seconds and the lidar noise the object points got
+    (:func:`lidar_noise_near`: {sensor_index: {range_sigma_m, dropout, points, rings}}).
+    ``annotation``, ``cameras`` and ``lidar_points`` are the first object's
+    (single-object readers)."""
 
     frame_idx: int
     objects: list[ObjectFrame]
     lidar_candidates: int = 0
     timings: dict[str, float] = field(default_factory=dict)
+    lidar_noise: dict[int, dict[str, float]] = field(default_factory=dict)
 
     @property
     def annotation(self) -> FrameAnnotation | None:
@@ -425,19 +434,91 @@ def _intensity_scale(fields: dict[str, NDArray]) -> dict[int, float] | float:
     return out
 
 
+def lidar_noise_near(
+    fields: dict[str, NDArray],
+    origins: dict | F64,
+    spheres: list[tuple[F64, float]],
+    *,
+    seed: int = 0,
+) -> dict[int, LidarNoise]:
+    """The real cloud's range noise and dropout per sensor_index around the objects.
+
+    spheres : per object its bounding sphere (centre (3,), radius) in the base frame;
+    :func:`renderer.lidar_cast.estimate_lidar_noise` measures each one's shell, and
+    with several objects a sensor gets the median of its finite estimates (points
+    summed, rings the most found).
+    """
+    per = [estimate_lidar_noise(fields, origins, c, r, seed=seed) for c, r in spheres]
+    out: dict[int, LidarNoise] = {}
+    for s in sorted({k for est in per for k in est}):
+        got = [est[s] for est in per if s in est]
+        sig = [g.range_sigma_m for g in got if np.isfinite(g.range_sigma_m)]
+        out[s] = LidarNoise(
+            float(np.median(sig)) if sig else float("nan"),
+            float(np.median([g.dropout for g in got])),
+            sum(g.points for g in got),
+            max(g.rings for g in got),
+        )
+    return out
+
+
+def _noise_arguments(
+    fields: dict[str, NDArray], noise: dict[int, LidarNoise] | None
+) -> dict[str, Any]:
+    """``range_sigma`` and ``dropout`` for :func:`cast_object` from an estimate: per
+    sensor_index (finite range noise only), or the one value of a cloud without it."""
+    if not noise:
+        return {}
+    sigma = {s: n.range_sigma_m for s, n in noise.items() if np.isfinite(n.range_sigma_m)}
+    dropout = {s: n.dropout for s, n in noise.items()}
+    if "sensor_index" not in fields:
+        return {"range_sigma": sigma.get(0, 0.0), "dropout": dropout.get(0, 0.0)}
+    return {"range_sigma": sigma, "dropout": dropout}
+
+
+def _merge_cast(
+    fields: dict[str, NDArray], cand: NDArray[np.int64], res: LidarCastResult
+) -> tuple[dict[str, NDArray], NDArray[np.int64]]:
+    """The cast of the candidate points ``cand`` written back into the whole cloud.
+
+    Returns the new fields (without the object rays that returned nothing, when the cast
+    dropped some) and the sorted indices of the object points in them.
+    """
+    src = res.object_indices if res.kept is None else res.kept[res.object_indices]
+    idx = cand[src]  # object points, input indices (cand, kept, object_indices sorted)
+    out = dict(fields)
+    for k in fields:
+        col = np.array(fields[k], copy=True)
+        col[idx] = res.fields[k][res.object_indices]
+        out[k] = col
+    if len(res.dropped) == 0:
+        return out, idx
+    keep = np.ones(len(fields["x"]), dtype=bool)
+    keep[cand[res.dropped]] = False
+    new_pos = np.cumsum(keep) - 1
+    return {k: v[keep] for k, v in out.items()}, new_pos[idx].astype(np.int64)
+
+
 def cast_frame_lidar(
-    fields: dict[str, NDArray], mesh: ObjectMesh, T_base_obj: F64, origins: dict | F64
+    fields: dict[str, NDArray],
+    mesh: ObjectMesh,
+    T_base_obj: F64,
+    origins: dict | F64,
+    *,
+    noise: dict[int, LidarNoise] | None = None,
+    seed: int = 0,
 ) -> tuple[dict[str, NDArray] | None, NDArray[np.int64], int]:
     """The object cast into one cloud, only over the points near it.
 
-    Returns (new fields or None when no point moved, sorted object point indices,
-    number of candidate rays).
+    noise : per sensor_index the range noise and dropout the object points get (e.g.
+    :func:`lidar_noise_near`); None: exactly on the surface, none dropped. seed : the
+    noise's draw (the same seed, the same cloud).
+
+    Returns (new fields or None when no point moved, sorted object point indices in the
+    new fields, number of candidate rays).
     """
 
-    b = mesh.bounds
-    centre_obj = 0.5 * (b[0] + b[1])
-    centre = transform_points(T_base_obj, centre_obj[None])[0]
-    radius = 0.5 * float(np.linalg.norm(b[1] - b[0])) + LIDAR_SPHERE_MARGIN_M
+    centre, radius = _bounding_sphere(mesh, T_base_obj)
     xyz = np.stack([np.asarray(fields[k]) for k in "xyz"], axis=1)
     if isinstance(origins, dict):
         o = point_origins(fields, origins)
@@ -448,16 +529,11 @@ def cast_frame_lidar(
         return None, cand, 0
     sub = {k: np.asarray(v)[cand] for k, v in fields.items()}
     res = cast_object(sub, mesh, T_base_obj, origins, intensity_scale=_intensity_scale_for(
-        fields, sub))  # fmt: skip
-    if res.moved == 0:
+        fields, sub), seed=seed, **_noise_arguments(fields, noise))  # fmt: skip
+    if res.moved == 0 and len(res.dropped) == 0:
         return None, np.zeros(0, np.int64), len(cand)
-    out = dict(fields)
-    idx = cand[res.object_indices]
-    for k in fields:
-        col = np.array(fields[k], copy=True)
-        col[idx] = res.fields[k][res.object_indices]
-        out[k] = col
-    return out, np.sort(idx), len(cand)
+    out, idx = _merge_cast(fields, cand, res)
+    return out, idx, len(cand)
 
 
 def _intensity_scale_for(full: dict[str, NDArray], sub: dict[str, NDArray]) -> Any:
@@ -479,12 +555,16 @@ def cast_frame_lidar_objects(
     meshes: list[ObjectMesh],
     T_base_objs: list[F64],
     origins: dict | F64,
+    *,
+    noise: dict[int, LidarNoise] | None = None,
+    seed: int = 0,
 ) -> tuple[dict[str, NDArray] | None, list[NDArray[np.int64]], int]:
     """Several objects cast into one cloud as ONE scene: a ray stops at the nearest object
-    surface (module docstring). Only rays near some object are cast.
+    surface (module docstring). Only rays near some object are cast. ``noise`` and
+    ``seed`` as in :func:`cast_frame_lidar`.
 
     Returns (new fields or None when no point moved, per object its sorted point
-    indices, number of candidate rays).
+    indices in the new fields, number of candidate rays).
     """
     n = len(meshes)
     empty = [np.zeros(0, np.int64) for _ in range(n)]
@@ -508,15 +588,11 @@ def cast_frame_lidar_objects(
     )
     sub = {k: np.asarray(v)[cand] for k, v in fields.items()}
     res = cast_object(sub, scene_mesh, np.eye(4), origins,
-                      intensity_scale=_intensity_scale_for(fields, sub))  # fmt: skip
-    if res.moved == 0:
+                      intensity_scale=_intensity_scale_for(fields, sub), seed=seed,
+                      **_noise_arguments(fields, noise))  # fmt: skip
+    if res.moved == 0 and len(res.dropped) == 0:
         return None, empty, len(cand)
-    out = dict(fields)
-    idx = cand[res.object_indices]
-    for k in fields:
-        col = np.array(fields[k], copy=True)
-        col[idx] = res.fields[k][res.object_indices]
-        out[k] = col
+    out, idx = _merge_cast(fields, cand, res)
     owner = _owners(placed, meshes, np.stack([out[k][idx] for k in "xyz"], 1).astype(np.float64))
     return out, [np.sort(idx[owner == k]) for k in range(n)], len(cand)
 
@@ -537,10 +613,18 @@ def _owners(placed: list[F64], meshes: list[ObjectMesh], q: F64) -> NDArray[np.i
 
 
 def _lidar_frame(
-    plan: Plan, frame: int, src: Path, dest: Path, t: dict[str, float]
+    plan: Plan,
+    frame: int,
+    src: Path,
+    dest: Path,
+    t: dict[str, float],
+    noise_out: dict[int, dict[str, float]],
 ) -> tuple[list[list[int]] | None, int, bool]:
-    """read -> cast -> write for one cloud; returns (per object its point indices, None
-    when no point moved; candidates; written)."""
+    """read -> noise near the objects -> cast -> write for one cloud; returns (per
+    object its point indices, None when no point moved; candidates; written). The
+    noise estimate goes into ``noise_out`` ({sensor_index: LidarNoise as a dict}; none
+    when the spec's ``render.lidar_noise`` is off); the noise's draw is seeded with the
+    frame number (the same job, the same clouds)."""
 
     assert plan.lidar_origins is not None and plan.lidar_stream is not None
     stream = plan.lidar_stream
@@ -551,13 +635,24 @@ def _lidar_frame(
     T_base_world = invert_T(plan.T_world_base[stream][frame])
     meshes = [o.mesh(stream, frame, full=True) for o in plan.objects]
     T_base_objs = [T_base_world @ o.pose(stream, frame) for o in plan.objects]
+    spheres = [_bounding_sphere(m, T) for m, T in zip(meshes, T_base_objs, strict=True)]
+    noise = (
+        lidar_noise_near(cloud.fields, plan.lidar_origins, spheres, seed=frame)
+        if plan.spec.render.lidar_noise
+        else None
+    )
+    noise_out.update({s: dataclasses.asdict(v) for s, v in (noise or {}).items()})
+    t["lidar_noise"] += time.perf_counter() - tic
+    tic = time.perf_counter()
     if len(meshes) == 1:
-        new, idx, n_cand = cast_frame_lidar(cloud.fields, meshes[0], T_base_objs[0],
-                                            plan.lidar_origins)  # fmt: skip
+        new, idx, n_cand = cast_frame_lidar(
+            cloud.fields, meshes[0], T_base_objs[0], plan.lidar_origins, noise=noise, seed=frame
+        )
         per = [idx]
     else:
-        new, per, n_cand = cast_frame_lidar_objects(cloud.fields, meshes, T_base_objs,
-                                                    plan.lidar_origins)  # fmt: skip
+        new, per, n_cand = cast_frame_lidar_objects(
+            cloud.fields, meshes, T_base_objs, plan.lidar_origins, noise=noise, seed=frame
+        )
     t["lidar_cast"] += time.perf_counter() - tic
     tic = time.perf_counter()
     if new is None:
@@ -577,6 +672,7 @@ STAGE_KEYS = (
     "annotate",
     "copy",
     "lidar_read",
+    "lidar_noise",
     "lidar_cast",
     "lidar_write",
 )
@@ -641,10 +737,11 @@ def augment_frame(plan: Plan, frame: int, out_root: Path) -> tuple[FrameRecord, 
                 views[k][name] = vws[k]  # type: ignore[assignment]
     lidar_idx: list[list[int]] | None = None
     n_cand = 0
+    noise: dict[int, dict[str, float]] = {}
     if plan.lidar_stream is not None and plan.lidar_stream in uris:
         uri = uris[plan.lidar_stream]
         lidar_idx, n_cand, _ = _lidar_frame(
-            plan, frame, uri_to_path(seq_root, uri), uri_to_path(out_root, uri), t
+            plan, frame, uri_to_path(seq_root, uri), uri_to_path(out_root, uri), t, noise
         )
         written.append(uri.lstrip("/"))
     objects = []
@@ -652,7 +749,7 @@ def augment_frame(plan: Plan, frame: int, out_root: Path) -> tuple[FrameRecord, 
         idx = None if lidar_idx is None else lidar_idx[k]
         ann = _annotation(plan, obj, frame, views[k], idx)
         objects.append(ObjectFrame(ann, records[k], len(idx or [])))
-    return FrameRecord(frame, objects, n_cand, t), written
+    return FrameRecord(frame, objects, n_cand, t, noise), written
 
 
 def augment_frames(plan: Plan, frames: Iterable[int], out_root: str | Path) -> ChunkResult:

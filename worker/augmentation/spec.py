@@ -205,6 +205,12 @@ class RenderSpec(_Section):
         ``default`` (renderer.lighting's DEFAULT_SUN_DIR_WORLD, the synthetic scenes' sun).
     scale : the job's fraction of the real resolution; the augmentation always works at
         the input images' resolution (kept for the service's spec; see from_job_spec).
+    lidar_noise : the object's lidar points get their sensor's range noise and dropout,
+        measured per frame on the real points around the object
+        (:func:`renderer.lidar_cast.estimate_lidar_noise`); False: exactly on the
+        object's surface, none dropped. Off by default: on the synthetic sequences the
+        estimate is 1.7-30x the sensors' true range noise (tests/augmentation/
+        test_frame.py), so turned on it would scatter the object more than the scene.
     """
 
     png_compression: int = Field(1, ge=0, le=9)
@@ -215,6 +221,7 @@ class RenderSpec(_Section):
     antialias: str = "auto"
     sun: Literal["ephemeris", "default"] = "ephemeris"
     scale: float = Field(1.0, gt=0.0, le=1.0)
+    lidar_noise: bool = False
 
 
 class AugmentSpec(_Section):
