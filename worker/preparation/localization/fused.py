@@ -1434,6 +1434,12 @@ WANDER_ROUNDS = 3
 WANDER_MIN_KNOTS = 4
 #: Bounds of one round's factor (a round moves a sigma by at most this much).
 WANDER_FACTOR_BOUNDS = (0.2, 5.0)
+#: The bias-step components estimated from the solution: the heading only. Roll and pitch
+#: keep the three-cornered hat with the ground pairs (:func:`_ins_level_wander`): estimated
+#: from the solution, a ground pair's systematic roll error read as INS wander (fire_site,
+#: 60 frames, good INS: roll over 30 frames 6.8 -> 21.8 mdeg); the positions keep their
+#: measure against the odometry (the INS speed and the odometry pairs carry the steps).
+WANDER_ESTIMATED = (False, False, True, False, False, False)
 #: Least redundancy (sum of 1 - h over a component's prior rows) to estimate its factor.
 WANDER_MIN_REDUNDANCY = 0.5
 #: The bias-step components, in :attr:`Problem.bias_step_sigma`'s order.
@@ -1482,6 +1488,7 @@ def wander_factors(pb: Problem, x: F64) -> F64 | None:
     log.debug("wander VCE: sum w r^2 %s, redundancy %s", num, den)
     # a component whose prior has (almost) no redundancy is left as it is
     f = np.where(den > WANDER_MIN_REDUNDANCY, np.sqrt(num / np.maximum(den, 1e-12)), 1.0)
+    f[~np.asarray(WANDER_ESTIMATED)] = 1.0
     return np.clip(f, *WANDER_FACTOR_BOUNDS)
 
 
@@ -1497,6 +1504,11 @@ def information(pb: Problem, x: F64) -> PoseInformation:
     a = np.abs(r)
     c = pb.sig.huber
     w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
+    if pb.odo_pairs is not None:
+        # The pairs re-use the lag-1 steps' scans: they shape the estimate (the odometry's
+        # error does not add up like independent steps) but are no new information.
+        i0 = _block_offsets(pb)["odo_pair"]
+        w[i0 : i0 + 2 * len(pb.odo_pairs["k"])] = 0.0
     A = (J.T.multiply(w[None, :]).tocsc() @ J).tocsc()
     meas = np.concatenate([b.ravel() for b in measurement_blocks(pb, x).values()])
     meas = meas[meas != 0.0]
