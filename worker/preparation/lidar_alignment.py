@@ -209,14 +209,16 @@ class _Sensor:
 
     points: F64
     tree: Any
-    planes: F64  # (m, PLANE_COLS) see _planes; NaN: not computed yet
+    planes: F64  # (m, PLANE_COLS) see _planes; valid where ``known``
+    known: NDArray[np.bool_]
     source: F64
 
     def planes_at(self, idx: NDArray[np.int64]) -> F64:
         """(k, PLANE_COLS) the local planes at points ``idx`` (:func:`_planes`)."""
-        todo = np.unique(idx[np.isnan(self.planes[idx, 0])])
+        todo = np.unique(idx[~self.known[idx]])
         if len(todo):
             self.planes[todo] = _planes(self.points[todo], self.points, self.tree)
+            self.known[todo] = True
         return self.planes[idx]
 
 
@@ -296,7 +298,7 @@ def _frame(
         if len(p) < NORMAL_KNN:
             continue
         sensors[int(s)] = _Sensor(
-            p, cKDTree(p), np.full((len(p), PLANE_COLS), np.nan), _thin(p, rng)
+            p, cKDTree(p), np.empty((len(p), PLANE_COLS)), np.zeros(len(p), bool), _thin(p, rng)
         )
     ref_near: dict[int, F64] = {}
     r = sensors.get(ref)
