@@ -200,27 +200,71 @@ def cast_object(
     -------
     LidarCastResult (the input arrays are not modified).
     """
+    n = _check_cloud(fields)
+    T_base_obj = np.asarray(T_base_obj, dtype=np.float64).reshape(4, 4)
+    out = {k: np.array(v, copy=True) for k, v in fields.items()}
+    empty = LidarCastResult(out, np.zeros(0, np.int64), 0, np.zeros(0))
+    if n == 0 or len(mesh.faces) == 0:
+        return empty
+    hits = _cast_rays(fields, mesh, invert_T(T_base_obj), origins_base)
+    if hits is None:
+        return empty
+    rng = np.random.default_rng([int(seed) & (2**63 - 1), 0x11DA2])
+    _move_points(out, fields, hits, T_base_obj, range_sigma, rng)
+    cos_inc = _hit_intensity(out, fields, mesh, hits, intensity_scale, intensity_noise, rng)
+    logger.debug("lidar cast %s: %d candidates, %d points moved", mesh.name, hits.candidates,
+                 len(hits.idx))  # fmt: skip
+    order = np.argsort(hits.idx)
+    idx, cos_inc = hits.idx[order].astype(np.int64), cos_inc[order]
+    return _drop_returns(out, fields, idx, cos_inc, dropout, rng)
+
+
+def _check_cloud(fields: Mapping[str, np.ndarray]) -> int:
+    """The cloud's point count; ValueError without x, y, z or with ragged fields."""
     for k in ("x", "y", "z"):
         if k not in fields:
             raise ValueError(f"cloud has no {k!r} field")
     n = len(fields["x"])
     if any(len(np.asarray(v)) != n for v in fields.values()):
         raise ValueError("cloud fields have different lengths")
-    T_base_obj = np.asarray(T_base_obj, dtype=np.float64).reshape(4, 4)
-    T_obj_base = invert_T(T_base_obj)
-    out = {k: np.array(v, copy=True) for k, v in fields.items()}
-    empty = LidarCastResult(out, np.zeros(0, np.int64), 0, np.zeros(0))
-    if n == 0 or len(mesh.faces) == 0:
-        return empty
+    return n
 
+
+@dataclass
+class _Hits:
+    """The rays that meet the object before their point (object frame).
+
+    idx : (k,) input indices of those points; t : (k,) float64 range of the hit (m);
+    d : (k, 3) unit ray directions; o_obj : (k, 3) ray origins; rng_m : (k,) the points'
+    own ranges; prim, uv, nrm : (k,), (k, 2), (k, 3) the hit triangle, barycentrics and
+    normal (open3d's); candidates : rays cast.
+    """
+
+    idx: NDArray[np.int64]
+    t: F64
+    d: F64
+    o_obj: F64
+    rng_m: F64
+    prim: NDArray[np.int64]
+    uv: F64
+    nrm: F64
+    candidates: int
+
+
+def _cast_rays(
+    fields: Mapping[str, np.ndarray],
+    mesh: ObjectMesh,
+    T_obj_base: F64,
+    origins_base: Mapping[int, ArrayLike] | ArrayLike,
+) -> _Hits | None:
+    """Cast the rays that can meet the object (its bounding sphere); None: no hit."""
     p_base = np.stack([np.asarray(fields[k], dtype=np.float64) for k in "xyz"], axis=1)
     o_base = point_origins(fields, origins_base)
     p_obj = _to_obj(T_obj_base, p_base)
     o_obj = _to_obj(T_obj_base, o_base)
     cand = _candidates(mesh, o_obj, p_obj)
     if len(cand) == 0:
-        return empty
-
+        return None
     seg = p_obj[cand] - o_obj[cand]
     rng_m = np.linalg.norm(seg, axis=1)
     d = seg / rng_m[:, None]
@@ -233,48 +277,83 @@ def cast_object(
     sel = np.flatnonzero(hit)
     idx = cand[sel]
     if len(idx) == 0:
-        return empty
+        return None
+    return _Hits(
+        idx, t_hit[sel], d[sel], o_obj[idx], rng_m[sel],
+        ans["primitive_ids"].numpy()[sel].astype(np.int64),
+        ans["primitive_uvs"].numpy()[sel].astype(np.float64),
+        ans["primitive_normals"].numpy()[sel].astype(np.float64),
+        len(cand),
+    )  # fmt: skip
 
-    rng = np.random.default_rng([int(seed) & (2**63 - 1), 0x11DA2])
-    t = t_hit[sel]
-    sig = _per_point(fields, idx, range_sigma)
+
+def _move_points(
+    out: dict[str, np.ndarray],
+    fields: Mapping[str, np.ndarray],
+    hits: _Hits,
+    T_base_obj: F64,
+    range_sigma: Mapping[int, float] | float,
+    rng: np.random.Generator,
+) -> None:
+    """x, y, z of the hit points (in ``out``) onto the object, with the range noise."""
+    t = hits.t
+    sig = _per_point(fields, hits.idx, range_sigma)
     if np.any(sig > 0.0):
         noise = np.clip(rng.standard_normal(len(t)), -_NOISE_TRUNCATION, _NOISE_TRUNCATION)
-        t = np.minimum(t + sig * noise, rng_m[sel])
-    q_obj = o_obj[idx] + t[:, None] * d[sel]
+        t = np.minimum(t + sig * noise, hits.rng_m)
+    q_obj = hits.o_obj + t[:, None] * hits.d
     q_base = q_obj @ T_base_obj[:3, :3].T + T_base_obj[:3, 3]
     for j, k in enumerate("xyz"):
-        out[k][idx] = q_base[:, j].astype(out[k].dtype)
+        out[k][hits.idx] = q_base[:, j].astype(out[k].dtype)
 
-    # intensity: reflectivity interpolated at the hit, times |cos(incidence)|
-    prim = ans["primitive_ids"].numpy()[sel].astype(np.int64)
-    uv = ans["primitive_uvs"].numpy()[sel].astype(np.float64)
-    nrm = ans["primitive_normals"].numpy()[sel].astype(np.float64)
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    cos_inc = np.abs(np.einsum("ij,ij->i", nrm, d[sel]))
+
+def _hit_intensity(
+    out: dict[str, np.ndarray],
+    fields: Mapping[str, np.ndarray],
+    mesh: ObjectMesh,
+    hits: _Hits,
+    intensity_scale: Mapping[int, float] | float,
+    intensity_noise: float,
+    rng: np.random.Generator,
+) -> F64:
+    """Intensity of the hit points (in ``out``): reflectivity interpolated at the hit,
+    times |cos(incidence)|; returns (k,) |cos(incidence)|."""
+    nrm = hits.nrm / np.maximum(np.linalg.norm(hits.nrm, axis=1, keepdims=True), 1e-12)
+    cos_inc = np.abs(np.einsum("ij,ij->i", nrm, hits.d))
     if "intensity" in out:
-        tri_r = mesh.reflectivity[mesh.faces[prim]].astype(np.float64)  # (k, 3)
+        tri_r = mesh.reflectivity[mesh.faces[hits.prim]].astype(np.float64)  # (k, 3)
+        uv = hits.uv
         w = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
         refl = np.einsum("ij,ij->i", tri_r, w)
         value = np.clip(refl * cos_inc, 0.0, 1.0)
         if intensity_noise > 0.0:
-            value = np.clip(value * (1.0 + intensity_noise * rng.standard_normal(len(idx))), 0, 1)
-        out["intensity"][idx] = _intensity_values(fields, idx, value, intensity_scale)
+            noise = rng.standard_normal(len(hits.idx))
+            value = np.clip(value * (1.0 + intensity_noise * noise), 0, 1)
+        out["intensity"][hits.idx] = _intensity_values(fields, hits.idx, value, intensity_scale)
+    return cos_inc
 
-    logger.debug("lidar cast %s: %d candidates, %d points moved", mesh.name, len(cand), len(idx))
-    order = np.argsort(idx)
-    idx, cos_inc = idx[order].astype(np.int64), cos_inc[order]
+
+def _drop_returns(
+    out: dict[str, np.ndarray],
+    fields: Mapping[str, np.ndarray],
+    idx: NDArray[np.int64],
+    cos_inc: F64,
+    dropout: Mapping[int, float] | float,
+    rng: np.random.Generator,
+) -> LidarCastResult:
+    """The result, each object point (sorted ``idx``) dropped with its sensor's
+    ``dropout`` probability (the cloud then shrinks: ``LidarCastResult.kept``)."""
     p_drop = _per_point(fields, idx, dropout)
     if not np.any(p_drop > 0.0):
         return LidarCastResult(out, idx, len(idx), cos_inc)
     drop = rng.random(len(idx)) < p_drop
-    keep = np.ones(n, bool)
+    keep = np.ones(len(fields["x"]), bool)
     keep[idx[drop]] = False
     kept = np.flatnonzero(keep)
     new_pos = np.cumsum(keep) - 1
-    out = {k: v[keep] for k, v in out.items()}
+    thinned = {k: v[keep] for k, v in out.items()}
     stay = idx[~drop]
-    return LidarCastResult(out, new_pos[stay].astype(np.int64), len(stay), cos_inc[~drop],
+    return LidarCastResult(thinned, new_pos[stay].astype(np.int64), len(stay), cos_inc[~drop],
                            kept=kept, dropped=idx[drop])  # fmt: skip
 
 

@@ -306,24 +306,59 @@ def build_person(rng: np.random.Generator, detail: float, pose: str | None = Non
     shorts = rng.random() < 0.15
     pp = _person_pose(pose, pose_rng)
 
-    # pelvis height: from the pose, or the lower ankle on the ground
-    ankles_below_hip = [
-        _THIGH * H * _dir_xz(pp.hip[i]) + _SHANK * H * _dir_xz(pp.hip[i] - pp.knee[i])
-        for i in (0, 1)
-    ]
-    if pp.pelvis is None:
-        P_z = _ANKLE * H - min(float(a[2]) for a in ankles_below_hip)
-    else:
-        P_z = pp.pelvis * H
-    P = np.array([0.0, 0.0, P_z])
+    P = np.array([0.0, 0.0, _pelvis_height(pp, H)])
     Rt = _rot("y", pp.lean)  # trunk: +z leans towards +x
 
     def trunk(x: float, y: float, z: float) -> F64:
         """A point given in the standing body (z in fractions of H above the hips)."""
         return P + Rt @ np.array([x, y, z])
 
+    top = "vest" if hivis else "shirt"
+    parts, hc = _person_head_torso(trunk, Rt, H, w, top, rng)
+    parts += _person_legs(P, pp, H, w, shorts)
+    parts += _person_arms(trunk, Rt, pp, pose, H, w, top, long_sleeves)
+
+    eye = hc + Rt @ np.array([0.045 * H, 0.0, 0.0])
+    if pose == "lying":  # turned, then lifted clear of the ground cut (re-grounded later)
+        parts = [_turned(p, _R_LIE_BACK, np.zeros(3)) for p in parts]
+        lift = np.array([0.0, 0.0, -min(float(p.lo[2]) for p in parts)])
+        parts = [_turned(p, np.eye(3), lift) for p in parts]
+        eye = _R_LIE_BACK @ eye + lift
+    voxel = 0.016 / detail
+    sm = mesh_parts(parts, voxel)
+    skin, regions = _person_regions(rng)
+    z0 = float(sm.vertices[:, 2].min())
+    meta = {"class": "person", "osdar_class": "person", "voxel_m": voxel, "pose": pose,
+            "variant": "hivis" if hivis else "casual", "skin": skin, "stature_m": H,
+            "build": build, "eye_height_m": float(eye[2] - z0),
+            "eye_height_standing_m": _HEAD_C * H}  # fmt: skip
+    detail_of = {"skin": "skin", "hair": "fur", "shirt": "cloth", "vest": "cloth",
+                 "trousers": "cloth", "shoes": "stone"}  # fmt: skip
+    return _finish(sm, regions, rng, "person", meta, textures=detail_of)
+
+
+def _pelvis_height(pp: _PersonPose, H: float) -> float:
+    """Pelvis height (m): from the pose, or with the lower ankle on the ground."""
+    if pp.pelvis is not None:
+        return pp.pelvis * H
+    ankles_below_hip = [
+        _THIGH * H * _dir_xz(pp.hip[i]) + _SHANK * H * _dir_xz(pp.hip[i] - pp.knee[i])
+        for i in (0, 1)
+    ]
+    return _ANKLE * H - min(float(a[2]) for a in ankles_below_hip)
+
+
+def _person_head_torso(
+    trunk: Callable[[float, float, float], F64],
+    Rt: F64,
+    H: float,
+    w: float,
+    top: str,
+    rng: np.random.Generator,
+) -> tuple[list[Part], F64]:
+    """Head, hair, neck and torso (chest and abdomen in ``top``, pelvis in trousers);
+    returns the parts and the head's centre (3,)."""
     parts: list[Part] = []
-    # head, hair, neck
     hc = trunk(0.0, 0.0, (_HEAD_C - _HIP) * H)
     parts.append(part_ellipsoid(hc, [0.057 * H, 0.046 * H, 0.066 * H], "skin", R=Rt))
     parts.append(part_ellipsoid(hc + Rt @ [0.012 * H, 0, -0.035 * H],
@@ -333,15 +368,18 @@ def build_person(rng: np.random.Generator, detail: float, pose: str | None = Non
                                 R=Rt))  # fmt: skip
     parts.append(part_capsule(trunk(0, 0, 0.30 * H), trunk(0.004 * H, 0, 0.385 * H), 0.032 * H,
                               0.028 * H, "skin", 0.02))  # fmt: skip
-    # torso: chest, abdomen (shirt), pelvis (trousers)
-    top = "vest" if hivis else "shirt"
     parts.append(part_ellipsoid(trunk(0, 0, 0.225 * H), [0.13 * w, 0.235 * w, 0.105 * H], top,
                                 0.04, R=Rt))  # fmt: skip
     parts.append(part_ellipsoid(trunk(0.005 * H, 0, 0.10 * H), [0.125 * w, 0.20 * w, 0.09 * H],
                                 top, 0.05, R=Rt))  # fmt: skip
     parts.append(part_ellipsoid(trunk(0, 0, 0.015 * H), [0.12 * w, 0.205 * w, 0.06 * H],
                                 "trousers", 0.04, R=Rt))  # fmt: skip
-    # legs (hips on the pelvis, not leaning with the trunk)
+    return parts, hc
+
+
+def _person_legs(P: F64, pp: _PersonPose, H: float, w: float, shorts: bool) -> list[Part]:
+    """Thighs, shanks and shoes (hips on the pelvis ``P``, not leaning with the trunk)."""
+    parts: list[Part] = []
     for i, side in enumerate((1.0, -1.0)):
         hip = P + np.array([0.0, side * 0.105 * w, 0.0])
         knee = hip + _THIGH * H * _dir_xz(pp.hip[i]) + [0, -side * 0.005 * w, 0]
@@ -357,7 +395,21 @@ def build_person(rng: np.random.Generator, detail: float, pose: str | None = Non
         parts.append(part_box(ankle + Rf @ [0.04 * H, 0, -0.025 * H],
                               [0.075 * H, 0.028 * H, 0.024 * H], 0.018 * H, "shoes", 0.02,
                               R=Rf))  # fmt: skip
-    # arms: shoulder flexion forward, slight abduction, elbow flexion forward
+    return parts
+
+
+def _person_arms(
+    trunk: Callable[[float, float, float], F64],
+    Rt: F64,
+    pp: _PersonPose,
+    pose: str,
+    H: float,
+    w: float,
+    top: str,
+    long_sleeves: bool,
+) -> list[Part]:
+    """Arms: shoulder flexion forward, slight abduction, elbow flexion forward."""
+    parts: list[Part] = []
     for i, side in enumerate((1.0, -1.0)):
         sh = trunk(0.0, side * 0.255 * w, (_SHOULDER - _HIP) * H)
         abd = np.radians(6.0)
@@ -372,15 +424,11 @@ def build_person(rng: np.random.Generator, detail: float, pose: str | None = Non
         fore = top if long_sleeves else "skin"
         parts.append(part_capsule(elbow, wrist, 0.04 * w, 0.032 * w, fore, 0.015))
         parts.append(part_capsule(wrist, hand, 0.03 * w, 0.024 * w, "skin", 0.015))
+    return parts
 
-    eye = hc + Rt @ np.array([0.045 * H, 0.0, 0.0])
-    if pose == "lying":  # turned, then lifted clear of the ground cut (re-grounded later)
-        parts = [_turned(p, _R_LIE_BACK, np.zeros(3)) for p in parts]
-        lift = np.array([0.0, 0.0, -min(float(p.lo[2]) for p in parts)])
-        parts = [_turned(p, np.eye(3), lift) for p in parts]
-        eye = _R_LIE_BACK @ eye + lift
-    voxel = 0.016 / detail
-    sm = mesh_parts(parts, voxel)
+
+def _person_regions(rng: np.random.Generator) -> tuple[object, dict[str, Region]]:
+    """The skin tone picked and the colour regions: skin, hair, clothes, shoes."""
     skin = _pick(rng, SKIN_TONES)
     regions = {
         "skin": _region(_vary(rng, skin, 0.06), 0.04),
@@ -390,14 +438,7 @@ def build_person(rng: np.random.Generator, detail: float, pose: str | None = Non
         "trousers": _region(_vary(rng, _pick(rng, TROUSERS), 0.15), 0.06),
         "shoes": _region(_pick(rng, SHOES), 0.04),
     }
-    z0 = float(sm.vertices[:, 2].min())
-    meta = {"class": "person", "osdar_class": "person", "voxel_m": voxel, "pose": pose,
-            "variant": "hivis" if hivis else "casual", "skin": skin, "stature_m": H,
-            "build": build, "eye_height_m": float(eye[2] - z0),
-            "eye_height_standing_m": _HEAD_C * H}  # fmt: skip
-    detail_of = {"skin": "skin", "hair": "fur", "shirt": "cloth", "vest": "cloth",
-                 "trousers": "cloth", "shoes": "stone"}  # fmt: skip
-    return _finish(sm, regions, rng, "person", meta, textures=detail_of)
+    return skin, regions
 
 
 def _turned(p: Part, R: F64, t: F64) -> Part:

@@ -562,30 +562,14 @@ def run_campaign(
     campaign = {"name": spec.name, "seed": spec.seed, "spec_file": str(spec_path)}
     write_json_atomic(out_dir / "campaign.json", {**campaign, "spec": spec.model_dump(mode="json")})
     write_atomic(out_dir / "variants.json", dump_variants(variants).encode())
-    contexts = {
-        e.key: SequenceContext(
-            folders[e.key],
-            prepared[e.key],
-            list(spec.job.cameras),
-            out_dir / ".work" / f"sequence_{i}",
-        )
-        for i, e in enumerate(spec.sequences)
-    }
+    contexts = _sequence_contexts(spec, folders, prepared, out_dir)
     records: dict[str, VariantRecord | None] = {}
     skipped: list[str] = []
     try:
         for v in variants:
-            rec = complete_record(out_dir, v)
-            if rec is not None:
+            rec, done = _run_or_resume(v, contexts[v.sequence], out_dir, workers, campaign)
+            if done:
                 skipped.append(v.id)
-                log.info("variant %s complete already: skipped", v.id)
-            else:
-                _forget(out_dir, v)
-                rec = run_variant(
-                    v, contexts[v.sequence], out_dir, workers=workers, campaign=campaign
-                )
-                write_json_atomic(record_path(out_dir, v), rec.to_json())
-                log.info("variant %s %s in %.1f s", v.id, rec.state, rec.seconds or 0.0)
             records[v.id] = rec
             if on_variant is not None:
                 on_variant(v, rec, v.id in skipped)
@@ -608,6 +592,40 @@ def run_campaign(
         shutil.rmtree(out_dir / ".work", ignore_errors=True)
     result.wall_s = time.perf_counter() - t0
     return result
+
+
+def _sequence_contexts(
+    spec: CampaignSpec,
+    folders: Mapping[str, Path],
+    prepared: Mapping[str, PreparedSequence],
+    out_dir: Path,
+) -> dict[str, SequenceContext]:
+    """Per sequence key its context: folder, prepared sequence, cameras, scratch folder."""
+    return {
+        e.key: SequenceContext(
+            folders[e.key],
+            prepared[e.key],
+            list(spec.job.cameras),
+            out_dir / ".work" / f"sequence_{i}",
+        )
+        for i, e in enumerate(spec.sequences)
+    }
+
+
+def _run_or_resume(
+    v: Variant, ctx: SequenceContext, out_dir: Path, workers: int, campaign: dict[str, Any]
+) -> tuple[VariantRecord, bool]:
+    """One variant's record: the one on disk when it is complete already (True), else
+    the variant run now and its record written (False)."""
+    rec = complete_record(out_dir, v)
+    if rec is not None:
+        log.info("variant %s complete already: skipped", v.id)
+        return rec, True
+    _forget(out_dir, v)
+    rec = run_variant(v, ctx, out_dir, workers=workers, campaign=campaign)
+    write_json_atomic(record_path(out_dir, v), rec.to_json())
+    log.info("variant %s %s in %.1f s", v.id, rec.state, rec.seconds or 0.0)
+    return rec, False
 
 
 def _write_outputs(result: CampaignResult) -> None:
