@@ -4,12 +4,14 @@ fails alone, and a campaign submit is idempotent.
 A prefork worker (concurrency 1) on Redis + PostgreSQL runs a campaign of 2 obstacles x
 ``draws`` placements on a small synthetic sequence (4 variants reduced, 8 in full):
 - a dry run first (``?dry_run=true``, the API waits for the worker's expansion): the
-  variants to expect, with their keys;
-- 20 concurrent submits with one Idempotency-Key: one campaign row, one expansion;
-- the pool process running the expansion is SIGKILLed while it prepares (the message comes
-  back: ``task_reject_on_worker_lost``) and again while the variants run, at random
-  moments (2 kills reduced, 5 in full; in full one kill is of the whole worker, which a
-  new worker replaces: its jobs come back through the leases and the reaper);
+  variants to expect, with their keys; the pool process running that expansion is
+  SIGKILLed while it prepares (the message comes back: ``task_reject_on_worker_lost``,
+  and the expansion runs again: 2 deliveries);
+- 20 concurrent submits with one Idempotency-Key: one campaign row, one expansion (on the
+  cached preparation: the same variant keys as the dry run);
+- pool processes SIGKILLed while the variants run, at random moments (2 kills reduced, 5
+  in full; in full the last is of the whole worker, which a new worker replaces: its jobs
+  come back through the leases and the reaper);
 - one variant is made to fail in its ``evaluate`` stage (the job machinery's test hook,
   set on that variant's job after the expansion): it must fail alone, with its reason.
 Figures: variants expected / made / as job rows / in the campaign's table (each exactly
