@@ -353,7 +353,8 @@ def synthetic_clicks(
     m in front of the camera (true pose at the camera's timestamp), plus N(0, noise^2).
 
     Only landmarks the lidar measured are clicked: a return of some frame (true poses, full
-    density) within ``lidar_support_m`` of the landmark (0: every landmark). The paper's
+    density) within ``lidar_support_m`` of the landmark (0: every landmark; when none in
+    view is measured, the unmeasured ones are clicked with a warning). The paper's
     operator clicks a landmark seen in both the image and the cloud; a pole top no beam
     ever hit has no calibration point, only points of other surfaces near its rays, and
     its RPE with the true poses is tens of pixels (:func:`lidar_support`). ``clouds``: the
@@ -366,14 +367,11 @@ def synthetic_clicks(
     truth = PoseTrack.from_csv(dense if dense.is_file() else gt / "poses.csv")
     cams = full_resolution_cameras(seq, cameras)
     landmarks = json.loads((gt / "landmarks.json").read_text())
+    measured = {lm["id"] for lm in landmarks}
     if lidar_support_m > 0 and landmarks:
         xyz = np.array([lm["xyz"] for lm in landmarks], dtype=np.float64).reshape(-1, 3)
         d = lidar_support(clouds if clouds is not None else _frame_clouds(seq), truth, xyz)
-        unmeasured = [lm["id"] for lm, di in zip(landmarks, d, strict=True) if di > lidar_support_m]
-        if unmeasured:
-            log.debug("landmarks no lidar return came within %.2f m of, not clicked: %s",
-                     lidar_support_m, ", ".join(unmeasured))  # fmt: skip
-        landmarks = [lm for lm, di in zip(landmarks, d, strict=True) if di <= lidar_support_m]
+        measured = {lm["id"] for lm, di in zip(landmarks, d, strict=True) if di <= lidar_support_m}
     rng = np.random.default_rng(seed)
     scored = []
     for lm in landmarks:
@@ -400,7 +398,15 @@ def synthetic_clicks(
             res = {n: (cams[n].width, cams[n].height) for n in uv}
             scored.append((sum(len(v) for v in uv.values()), Clicks(lm["id"], uv, res)))
     scored.sort(key=lambda x: -x[0])
-    return [c for _, c in scored[:max_landmarks]]
+    kept = [(n, c) for n, c in scored if c.landmark in measured]
+    if scored and not kept:  # a few frames of a sparse cloud: say so, click them anyway
+        log.warning(
+            "%s: no landmark in view has a lidar return within %.2f m; clicking the "
+            "unmeasured ones (their RPE includes the distance to the nearest return)",
+            seq.name, lidar_support_m,
+        )  # fmt: skip
+        kept = scored
+    return [c for _, c in kept[:max_landmarks]]
 
 
 def lidar_support(clouds: Any, track: Any, xyz_world: np.ndarray) -> np.ndarray:
