@@ -128,6 +128,82 @@ def _expanding(settings: Any) -> dict[str, Any] | None:
         return None if row is None else {"id": row.id, "stage": row.stage}
 
 
+def _kill_during_variants(
+    settings: Any, cid: str, workers: Any, rng: random.Random, quick: bool, n: int
+) -> list[dict[str, Any]]:
+    """Kill a pool process (the last time, in the full form, the whole worker) at random
+    moments while the campaign's variants run."""
+    kills: list[dict[str, Any]] = []
+    for i in range(n):
+        time.sleep(rng.uniform(0.5, 4.0))
+        run = c.wait_for(lambda: _running_job(settings, cid), 120, "a running variant")
+        whole = not quick and i == n - 1
+        pid = workers.kill_worker() if whole else _kill_child(workers, rng)
+        if whole:
+            workers.start()
+        kills.append(
+            {
+                "kill": "worker" if whole else "child",
+                "pid": pid,
+                "stage_hit": run["stage"],
+                "job": run["id"][:8],
+            }
+        )
+        c.log(f"kill {i + 1}: {kills[-1]['kill']} in {run['stage']!r}")
+    return kills
+
+
+def _figures(
+    expected: dict[str, Any],
+    detail: dict[str, Any],
+    failing: dict[str, Any],
+    dry_deliveries: Any,
+    variant_rows: Any,
+    per_job: dict[str, Any],
+    archives: dict[str, Any],
+    manifest: dict[str, Any],
+    codes: Any,
+    rows: Any,
+    kills: list[dict[str, Any]],
+    wall: float,
+    deaths: Any,
+) -> dict[str, Any]:
+    """The scenario's figures from what the run observed."""
+    made = {v["id"]: v["key"] for v in detail["variants"]}
+    ok_jobs = [j for j, (st, *_rest) in per_job.items() if st == "SUCCEEDED"]
+    failed = [(j, err) for j, (st, err, *_r) in per_job.items() if st == "FAILED"]
+    one_archive = sum(
+        1 for j, (st, _e, key, _a) in per_job.items() if st == "SUCCEEDED" and archives[j] == [key]
+    )
+    return {
+        "variants_expected": len(expected),
+        "variants_made": len(made),
+        "variants_same_keys_as_the_dry_run": made == expected,
+        "dry_run_expansion_deliveries": dry_deliveries,
+        "variant_rows": variant_rows,
+        "variant_job_rows": len(per_job),
+        "variant_jobs_succeeded": len(ok_jobs),
+        "variant_jobs_failed": len(failed),
+        "failed_reason": failed[0][1] if failed else None,
+        "failed_is_the_designed_one": [f[0] for f in failed] == [failing["job_id"]],
+        "jobs_with_exactly_one_archive": one_archive,
+        "archives_of_failed_jobs": sum(len(archives[j]) for j, _ in failed),
+        "attempts_max": max((a for *_x, a in per_job.values()), default=0),
+        "campaign_state": detail["state"],
+        "campaign_summary": detail["summary"],
+        "manifest_rows": len(manifest["variants"]),
+        "manifest_states": dict(Counter(r["state"] for r in manifest["variants"])),
+        "submit_status_codes": dict(codes),
+        "campaign_rows_for_the_key": rows,
+        "kills": len(kills),
+        "kills_by_kind": dict(Counter(k["kill"] for k in kills)),
+        "kills_by_stage": dict(Counter(str(k["stage_hit"]) for k in kills)),
+        "campaign_wall_s": round(wall, 1),
+        "worker_process_deaths_logged": deaths,
+        "records": kills,
+    }
+
+
 def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
     rng = random.Random(seed)
     draws = 2 if quick else 4
@@ -182,23 +258,9 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
             with session_scope(settings) as s:
                 job = s.get(Job, failing["job_id"])
                 job.spec = {**job.spec, "_test": {"fail_in": "evaluate"}}
-            # kills while the variants run
-            for i in range(kills_during_variants):
-                time.sleep(rng.uniform(0.5, 4.0))
-                run = c.wait_for(lambda: _running_job(settings, cid), 120, "a running variant")
-                whole = not quick and i == kills_during_variants - 1
-                pid = workers.kill_worker() if whole else _kill_child(workers, rng)
-                if whole:
-                    workers.start()
-                kills.append(
-                    {
-                        "kill": "worker" if whole else "child",
-                        "pid": pid,
-                        "stage_hit": run["stage"],
-                        "job": run["id"][:8],
-                    }
-                )
-                c.log(f"kill {len(kills)}: {kills[-1]['kill']} in {run['stage']!r}")
+            kills += _kill_during_variants(
+                settings, cid, workers, rng, quick, kills_during_variants
+            )
             c.wait_for(lambda: _campaign(http, cid)["state"] in END, 600, "the campaign's end")
             wall = time.monotonic() - t0
             detail = _campaign(http, cid)
@@ -213,39 +275,21 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
                 per_job = {j.id: (j.state.value, j.error, j.result_key, j.attempt) for j in jobs}
             archives = {jid: c.archive_keys(store, jid) for jid in per_job}
             deaths = workers.deaths()
-    made = {v["id"]: v["key"] for v in detail["variants"]}
-    ok_jobs = [j for j, (st, *_rest) in per_job.items() if st == "SUCCEEDED"]
-    failed = [(j, err) for j, (st, err, *_r) in per_job.items() if st == "FAILED"]
-    one_archive = sum(
-        1 for j, (st, _e, key, _a) in per_job.items() if st == "SUCCEEDED" and archives[j] == [key]
+    return _figures(
+        expected,
+        detail,
+        failing,
+        dry_deliveries,
+        variant_rows,
+        per_job,
+        archives,
+        manifest,
+        codes,
+        rows,
+        kills,
+        wall,
+        deaths,
     )
-    return {
-        "variants_expected": len(expected),
-        "variants_made": len(made),
-        "variants_same_keys_as_the_dry_run": made == expected,
-        "dry_run_expansion_deliveries": dry_deliveries,
-        "variant_rows": variant_rows,
-        "variant_job_rows": len(per_job),
-        "variant_jobs_succeeded": len(ok_jobs),
-        "variant_jobs_failed": len(failed),
-        "failed_reason": failed[0][1] if failed else None,
-        "failed_is_the_designed_one": [f[0] for f in failed] == [failing["job_id"]],
-        "jobs_with_exactly_one_archive": one_archive,
-        "archives_of_failed_jobs": sum(len(archives[j]) for j, _ in failed),
-        "attempts_max": max((a for *_x, a in per_job.values()), default=0),
-        "campaign_state": detail["state"],
-        "campaign_summary": detail["summary"],
-        "manifest_rows": len(manifest["variants"]),
-        "manifest_states": dict(Counter(r["state"] for r in manifest["variants"])),
-        "submit_status_codes": dict(codes),
-        "campaign_rows_for_the_key": rows,
-        "kills": len(kills),
-        "kills_by_kind": dict(Counter(k["kill"] for k in kills)),
-        "kills_by_stage": dict(Counter(str(k["stage_hit"]) for k in kills)),
-        "campaign_wall_s": round(wall, 1),
-        "worker_process_deaths_logged": deaths,
-        "records": kills,
-    }
 
 
 def ok(f: dict[str, Any]) -> bool:

@@ -28,6 +28,36 @@ from scripts.reliability import common as c
 NAME = "kill_workers"
 
 
+def _figures(
+    records: list[dict[str, Any]],
+    n: int,
+    missed: Any,
+    duration: float,
+    deaths: Any,
+    poller_figures: dict[str, Any],
+) -> dict[str, Any]:
+    """The scenario's figures from the kills' records."""
+    lost = [r for r in records if r["state"] != "SUCCEEDED"]
+    return {
+        "kills": len(records),
+        "kills_asked": n,
+        "kill_times_after_the_job_ended_redrawn": missed,
+        "kills_by_kind": dict(Counter(r["kill"] for r in records)),
+        "kills_by_stage": dict(Counter(str(r["stage_hit"]) for r in records)),
+        "job_run_s": round(duration, 1),
+        "jobs_lost": len(lost),
+        "jobs_with_exactly_one_archive": sum(r["one_archive"] for r in records),
+        "attempts_total": sum(r["attempts"] for r in records),
+        "attempts_max": max((r["attempts"] for r in records), default=0),
+        "deliveries_max": max((r["deliveries"] for r in records), default=0),
+        "recovery_s_max": max((r["recovery_s"] for r in records), default=0),
+        "worker_process_deaths_logged": deaths,
+        **poller_figures,
+        "lost": [{k: r[k] for k in ("job", "kill", "stage_hit", "state", "error")} for r in lost],
+        "records": records,
+    }
+
+
 def run(
     workdir: Path, *, quick: bool = False, seed: int = 0, kills: int | None = None
 ) -> dict[str, Any]:
@@ -117,25 +147,7 @@ def run(
                     f"archives={len(rec['archives'])} in {rec['recovery_s']}s"
                 )
             deaths = workers.deaths()
-    lost = [r for r in records if r["state"] != "SUCCEEDED"]
-    return {
-        "kills": len(records),
-        "kills_asked": n,
-        "kill_times_after_the_job_ended_redrawn": missed,
-        "kills_by_kind": dict(Counter(r["kill"] for r in records)),
-        "kills_by_stage": dict(Counter(str(r["stage_hit"]) for r in records)),
-        "job_run_s": round(duration, 1),
-        "jobs_lost": len(lost),
-        "jobs_with_exactly_one_archive": sum(r["one_archive"] for r in records),
-        "attempts_total": sum(r["attempts"] for r in records),
-        "attempts_max": max((r["attempts"] for r in records), default=0),
-        "deliveries_max": max((r["deliveries"] for r in records), default=0),
-        "recovery_s_max": max((r["recovery_s"] for r in records), default=0),
-        "worker_process_deaths_logged": deaths,
-        **poller.figures(),
-        "lost": [{k: r[k] for k in ("job", "kill", "stage_hit", "state", "error")} for r in lost],
-        "records": records,
-    }
+    return _figures(records, n, missed, duration, deaths, poller.figures())
 
 
 def ok(f: dict[str, Any]) -> bool:
