@@ -128,6 +128,10 @@ def _expanding(settings: Any) -> dict[str, Any] | None:
         return None if row is None else {"id": row.id, "stage": row.stage}
 
 
+#: Seconds each variant's augment stage sleeps (the runner's test hook).
+VARIANT_SLEEP_S = 3.0
+
+
 def _kill_during_variants(
     settings: Any, cid: str, workers: Any, rng: random.Random, quick: bool, n: int
 ) -> list[dict[str, Any]]:
@@ -208,7 +212,8 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
     rng = random.Random(seed)
     draws = 2 if quick else 4
     kills_during_variants = 2 if quick else 5
-    seq = c.synth_sequence(workdir / "seq" / "fire_site_rel")
+    # long enough that a variant is still running when the scenario has set its hooks
+    seq = c.synth_sequence(workdir / "seq" / "fire_site_rel24", frames=24)
     with c.pg_database() as db, c.redis_db() as broker:
         settings = c.reliability_settings(
             workdir / "var",
@@ -256,8 +261,15 @@ def run(workdir: Path, *, quick: bool = False, seed: int = 0) -> dict[str, Any]:
             detail = _campaign(http, cid)
             failing = detail["variants"][-1]  # the last variant fails by design
             with session_scope(settings) as s:
-                job = s.get(Job, failing["job_id"])
-                job.spec = {**job.spec, "_test": {"fail_in": "evaluate"}}
+                # every variant's augment takes a few seconds, so that the kills find one
+                # running on an idle machine too (the tiny sequence's variants took
+                # 1 s each: all were done before the first kill)
+                for v in detail["variants"]:
+                    job = s.get(Job, v["job_id"])
+                    hooks: dict[str, Any] = {"sleep_in": {"augment": VARIANT_SLEEP_S}}
+                    if v["job_id"] == failing["job_id"]:
+                        hooks["fail_in"] = "evaluate"
+                    job.spec = {**job.spec, "_test": hooks}
             kills += _kill_during_variants(
                 settings, cid, workers, rng, quick, kills_during_variants
             )

@@ -18,6 +18,7 @@ from sqlalchemy import select, update
 
 from osdar_platform.db import get_sessionmaker, updated_rows
 from osdar_platform.models import Job, JobEvent, JobState, utcnow
+from worker.orchestration.broker_sentinel import sentinel_epoch
 
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
@@ -66,8 +67,10 @@ def enqueue_job(
     stays PENDING with an ``enqueue_failed`` event.
     """
     make_session = _sessions(settings, sessions)
+    celery = _celery_app(app)
+    token = _sentinel_token(str(celery.conf.broker_url or ""))
     try:
-        _celery_app(app).send_task(TASK_RUN_JOB, args=[job_id], task_id=job_id)
+        celery.send_task(TASK_RUN_JOB, args=[job_id], task_id=job_id)
     except Exception as exc:
         log.warning("job %s: enqueue failed: %s", job_id, exc)
         with make_session.begin() as session:
@@ -78,9 +81,22 @@ def enqueue_job(
             session,
             update(Job)
             .where(Job.id == job_id, Job.state == JobState.PENDING)
-            .values(state=JobState.QUEUED, updated_at=utcnow()),
+            .values(state=JobState.QUEUED, updated_at=utcnow(), broker_run_id=token),
         )
         session.add(JobEvent(job_id=job_id, kind="queued" if moved else "sent"))
+
+
+def _sentinel_token(broker_url: str) -> str | None:
+    """The Redis broker's sentinel token the message is handed under (written if it is
+    gone: a first run), so that the reaper re-sends it only if that sentinel vanishes
+    (:mod:`worker.orchestration.broker_sentinel`); None for other brokers or when it
+    cannot be read (the reaper's time rule then applies)."""
+    try:
+        epoch = sentinel_epoch(broker_url)
+    except Exception as exc:  # the send below says whether the broker is there
+        log.debug("broker sentinel not read before a send: %s", exc)
+        return None
+    return None if epoch is None else epoch.token
 
 
 def request_cancel(

@@ -72,21 +72,24 @@ child forked later.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import threading
 import time
-import uuid
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
-import redis
 from sqlalchemy import and_, delete, or_, select, update
 
 from osdar_platform.db import make_engine, make_sessionmaker, updated_rows
 from osdar_platform.models import TERMINAL_STATES, Job, JobEvent, JobLease, JobState, utcnow
 from osdar_platform.settings import Settings
+from worker.orchestration.broker_sentinel import (
+    SENTINEL_KEY,
+    BrokerEpoch,
+    is_redis_url,
+    sentinel_epoch,
+)
 from worker.orchestration.celery_app import make_celery
 from worker.orchestration.queue import TASK_RUN_JOB, requeue_pending
 from worker.orchestration.state import POISON_REASON
@@ -100,7 +103,6 @@ BROKER_REASON = (
     "handed to it at {sent}"
 )
 #: The reaper's own key in the broker's Redis database (module docstring).
-SENTINEL_KEY = "osdar_ar:broker_epoch"
 
 
 @dataclass
@@ -119,41 +121,14 @@ def stale_after_s(settings: Settings) -> float:
 
 
 # ---------------------------------------------------------------------------- broker
-@dataclass(frozen=True)
-class BrokerEpoch:
-    """Since when the Redis broker's data is known intact: the sentinel's token and time."""
-
-    token: str
-    since: datetime
-    #: This call wrote the sentinel: the previous one was gone (data lost, or first run).
-    written: bool = False
-
-
 def _is_redis(settings: Settings) -> bool:
-    return str(settings.broker_url).startswith(("redis://", "rediss://"))
+    return is_redis_url(str(settings.broker_url))
 
 
 def broker_epoch(settings: Settings) -> BrokerEpoch | None:
     """The sentinel of the Redis broker (written now if it is gone); None for other
     brokers. Raises if Redis is not reachable or the sentinel is not ours."""
-    if not _is_redis(settings):
-        return None
-    url = str(settings.broker_url)
-    client = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5)
-    try:
-        raw = client.get(SENTINEL_KEY)
-        written = False
-        if raw is None:
-            value = {"token": uuid.uuid4().hex, "since": utcnow().isoformat()}
-            written = bool(client.set(SENTINEL_KEY, json.dumps(value), nx=True))
-            raw = client.get(SENTINEL_KEY)  # another reaper's, if it was faster
-        data = json.loads(raw or "null")
-        since = datetime.fromisoformat(data["since"])
-    except (ValueError, TypeError, KeyError) as exc:
-        raise ValueError(f"broker sentinel {SENTINEL_KEY!r} unreadable: {raw!r}") from exc
-    finally:
-        client.close()
-    return BrokerEpoch(str(data["token"]), since, written)
+    return sentinel_epoch(str(settings.broker_url))
 
 
 # ---------------------------------------------------------------------------- decide
@@ -460,6 +435,7 @@ def stop_reaper() -> None:
 
 
 __all__ = [
+    "SENTINEL_KEY",
     "BrokerEpoch",
     "JobView",
     "LeaseView",
