@@ -68,7 +68,8 @@ def enqueue_job(
     """
     make_session = _sessions(settings, sessions)
     celery = _celery_app(app)
-    token = _sentinel_token(str(celery.conf.broker_url or ""))
+    conf = getattr(celery, "conf", None)  # a dispatcher's stand-in may have none
+    token = _sentinel_token(str(getattr(conf, "broker_url", None) or ""))
     try:
         celery.send_task(TASK_RUN_JOB, args=[job_id], task_id=job_id)
     except Exception as exc:
