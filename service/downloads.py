@@ -35,6 +35,18 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | Literal["uns
     return start, end
 
 
+def archive_media_type(name: str) -> str:
+    """The media type of a published archive, by its file name (``archive.tar.gz``)."""
+    if name.endswith((".tar.gz", ".tgz")):
+        return "application/gzip"
+    return "application/zip" if name.endswith(".zip") else "application/x-tar"
+
+
+def image_media_type(name: str) -> str:
+    """The media type of a preview image: JPEG by its suffix, PNG otherwise."""
+    return "image/jpeg" if name.endswith((".jpg", ".jpeg")) else "image/png"
+
+
 def stream_object(
     store: ObjectStore,
     key: str,

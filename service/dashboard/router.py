@@ -45,7 +45,7 @@ from osdar_platform.models import CampaignState, JobState
 from service.dashboard import auth
 from service.dashboard.auth import BASE, ApiUser, DashSession, PageUser
 from service.deps import DispatcherDep, SessionDep, SettingsDep, StoreDep
-from service.downloads import stream_object
+from service.downloads import archive_media_type, image_media_type, stream_object
 from service.errors import Conflict, NotFound
 from service.schemas import ID_PATTERN
 from service.services import assets as svc_assets
@@ -317,8 +317,7 @@ def job_preview(
         key = svc_jobs.preview_key(
             session=session, owner=user.key, job_id=job_id, index=index, everyone=_everyone(user)
         )
-        media = "image/jpeg" if key.endswith((".jpg", ".jpeg")) else "image/png"
-        response = stream_object(store, key, range_header=None, media_type=media)
+        response = stream_object(store, key, range_header=None, media_type=image_media_type(key))
     except (NotFound, Conflict):  # no such preview, or the job has not SUCCEEDED
         return not_found(request, user, "preview", f"{job_id}/{index}")
     response.headers["Cache-Control"] = "private, max-age=3600"
@@ -339,12 +338,11 @@ def job_archive(
             session=session, owner=user.key, job_id=job_id, everyone=_everyone(user)
         )
         name = key.rsplit("/", 1)[-1]
-        media = "application/gzip" if name.endswith((".tar.gz", ".tgz")) else "application/x-tar"
         return stream_object(
             store,
             key,
             range_header=request.headers.get("range"),
-            media_type=media,
+            media_type=archive_media_type(name),
             filename=f"osdar-ar-{job_id}-{name}",
         )
     except NotFound:

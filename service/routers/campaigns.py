@@ -9,18 +9,19 @@ from fastapi import APIRouter, Path, Query, Response, status
 
 from osdar_platform.models import CampaignState
 from service.campaign_schemas import CampaignDetail, CampaignPublic
-from service.deps import CurrentKey, DispatcherDep, SessionDep, SettingsDep, StoreDep
-from service.downloads import download_object, download_responses
+from service.deps import CurrentKey, DispatcherDep, SessionDep, SettingsDep
 from service.routers.common import (
     AUTH_ERRORS,
     BAD_REQUEST,
     CONFLICT,
     INVALID,
     NOT_FOUND,
+    DownloadsDep,
     Limit,
     Offset,
+    download_route,
 )
-from service.routers.jobs import IdempotencyKey, RangeHeader
+from service.routers.jobs import IdempotencyKey
 from service.schemas import ID_PATTERN, Page
 from service.services import campaigns as svc
 from worker.campaign.spec import CampaignSpec
@@ -29,6 +30,7 @@ router = APIRouter(prefix="/campaigns", tags=["campaigns"], responses=AUTH_ERROR
 
 CampaignId = Annotated[str, Path(max_length=64, pattern=ID_PATTERN)]
 VariantsLimit = Annotated[int, Query(ge=1, le=1000, description="variants per page")]
+MANIFEST_MEDIA = {"json": "application/json", "csv": "text/csv"}
 
 
 @router.post(
@@ -140,48 +142,36 @@ def _manifest(
     campaign_id: str,
     key: CurrentKey,
     session: SessionDep,
-    store: StoreDep,
-    settings: SettingsDep,
-    range_header: str | None,
+    download: DownloadsDep,
 ) -> Response:
     store_key = svc.manifest_key(session=session, owner=key, campaign_id=campaign_id, fmt=fmt)
-    media = "application/json" if fmt == "json" else "text/csv"
-    return download_object(store, store_key, range_header=range_header, media_type=media,
-                           filename=f"osdar-ar-campaign-{campaign_id}-manifest.{fmt}",
-                           ttl_s=settings.download_url_ttl_s)  # fmt: skip
+    return download.send(
+        store_key,
+        media_type=MANIFEST_MEDIA[fmt],
+        filename=f"osdar-ar-campaign-{campaign_id}-manifest.{fmt}",
+    )
 
 
 @router.get(
     "/{campaign_id}/manifest.json",
-    response_model=None,
-    response_class=Response,
-    responses={**download_responses("application/json", redirect=True), **NOT_FOUND, **CONFLICT},
-    summary="The manifest (one row per variant: objects, classes, gauge, AR quality), JSON",
+    **download_route(
+        MANIFEST_MEDIA["json"],
+        summary="The manifest (one row per variant: objects, classes, gauge, AR quality), JSON",
+    ),
 )
 def manifest_json(
-    campaign_id: CampaignId,
-    key: CurrentKey,
-    session: SessionDep,
-    store: StoreDep,
-    settings: SettingsDep,
-    range_header: RangeHeader = None,
+    campaign_id: CampaignId, key: CurrentKey, session: SessionDep, download: DownloadsDep
 ) -> Response:
-    return _manifest("json", campaign_id, key, session, store, settings, range_header)
+    return _manifest("json", campaign_id, key, session, download)
 
 
 @router.get(
     "/{campaign_id}/manifest.csv",
-    response_model=None,
-    response_class=Response,
-    responses={**download_responses("text/csv", redirect=True), **NOT_FOUND, **CONFLICT},
-    summary="The manifest as CSV (the same rows flattened)",
+    **download_route(
+        MANIFEST_MEDIA["csv"], summary="The manifest as CSV (the same rows flattened)"
+    ),
 )
 def manifest_csv(
-    campaign_id: CampaignId,
-    key: CurrentKey,
-    session: SessionDep,
-    store: StoreDep,
-    settings: SettingsDep,
-    range_header: RangeHeader = None,
+    campaign_id: CampaignId, key: CurrentKey, session: SessionDep, download: DownloadsDep
 ) -> Response:
-    return _manifest("csv", campaign_id, key, session, store, settings, range_header)
+    return _manifest("csv", campaign_id, key, session, download)

@@ -7,16 +7,18 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Header, Path, Query, Response, status
 
 from osdar_platform.models import JobState
-from service.deps import CurrentKey, DispatcherDep, SessionDep, SettingsDep, StoreDep
-from service.downloads import download_object, download_responses, stream_object
+from service.deps import CurrentKey, DispatcherDep, SessionDep, SettingsDep
+from service.downloads import archive_media_type, image_media_type
 from service.routers.common import (
     AUTH_ERRORS,
     BAD_REQUEST,
     CONFLICT,
     INVALID,
     NOT_FOUND,
+    DownloadsDep,
     Limit,
     Offset,
+    download_route,
 )
 from service.schemas import ID_PATTERN, JobCreate, JobEventPublic, JobPublic, Page
 from service.services import jobs as svc
@@ -33,7 +35,6 @@ IdempotencyKey = Annotated[
         description="the same key returns the same job (per API key)",
     ),
 ]
-RangeHeader = Annotated[str | None, Header(alias="Range", max_length=200)]
 JobId = Annotated[str, Path(max_length=64, pattern=ID_PATTERN)]
 
 
@@ -131,31 +132,18 @@ def job_events(job_id: JobId, key: CurrentKey, session: SessionDep) -> list[JobE
 
 @router.get(
     "/{job_id}/archive",
-    response_model=None,
-    response_class=Response,
-    responses={**download_responses("application/x-tar", redirect=True), **NOT_FOUND, **CONFLICT},
-    summary="Download the augmented sequence (streamed with Range; S3: 307 to a presigned URL)",
+    **download_route(
+        "application/x-tar",
+        summary="Download the augmented sequence (streamed with Range; S3: 307 to a presigned URL)",
+    ),
 )
 def job_archive(
-    job_id: JobId,
-    key: CurrentKey,
-    session: SessionDep,
-    store: StoreDep,
-    settings: SettingsDep,
-    range_header: RangeHeader = None,
+    job_id: JobId, key: CurrentKey, session: SessionDep, download: DownloadsDep
 ) -> Response:
     store_key = svc.archive_key(session=session, owner=key, job_id=job_id)
     name = store_key.rsplit("/", 1)[-1]
-    media = "application/zip" if name.endswith(".zip") else "application/x-tar"
-    if name.endswith((".tar.gz", ".tgz")):
-        media = "application/gzip"
-    return download_object(
-        store,
-        store_key,
-        range_header=range_header,
-        media_type=media,
-        filename=f"osdar-ar-{job_id}-{name}",
-        ttl_s=settings.download_url_ttl_s,
+    return download.send(
+        store_key, media_type=archive_media_type(name), filename=f"osdar-ar-{job_id}-{name}"
     )
 
 
@@ -182,19 +170,14 @@ def job_previews(job_id: JobId, key: CurrentKey, session: SessionDep) -> list[st
 
 @router.get(
     "/{job_id}/previews/{index}",
-    response_model=None,
-    response_class=Response,
-    responses={**download_responses("image/png"), **NOT_FOUND, **CONFLICT},
-    summary="One preview image",
+    **download_route("image/png", summary="One preview image", redirect=False),
 )
 def job_preview(
     job_id: JobId,
     index: Annotated[int, Path(ge=0, le=10_000)],
     key: CurrentKey,
     session: SessionDep,
-    store: StoreDep,
-    range_header: RangeHeader = None,
+    download: DownloadsDep,
 ) -> Response:
     store_key = svc.preview_key(session=session, owner=key, job_id=job_id, index=index)
-    media = "image/jpeg" if store_key.endswith((".jpg", ".jpeg")) else "image/png"
-    return stream_object(store, store_key, range_header=range_header, media_type=media)
+    return download.stream(store_key, media_type=image_media_type(store_key))

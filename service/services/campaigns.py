@@ -48,8 +48,9 @@ from service.campaign_schemas import (
     CampaignVariantPublic,
     VariantLinks,
 )
-from service.errors import Conflict, Invalid, NotFound
+from service.errors import Conflict, Invalid
 from service.schemas import ID_PATTERN, Progress
+from service.services.ownership import owned_or_404
 from worker.campaign.spec import CampaignSpec
 
 log = logging.getLogger(__name__)
@@ -211,10 +212,9 @@ def get_campaign(
     *, session: Session, owner: ApiKey, campaign_id: str, everyone: bool = False
 ) -> Campaign:
     """The campaign (404 for another key's, unless ``everyone``: an operator's dashboard)."""
-    row = session.get(Campaign, campaign_id)
-    if row is None or (row.owner_id != owner.id and not everyone):
-        raise NotFound(f"campaign {campaign_id} not found")
-    return row
+    return owned_or_404(
+        session, Campaign, campaign_id, owner=owner, what="campaign", everyone=everyone
+    )
 
 
 def list_campaigns(
