@@ -18,7 +18,8 @@ from osdar_platform.catalog import MESH_ARCHIVE_TYPES, MESH_FILE_TYPES
 from osdar_platform.models import ACTIVE_STATES, ApiKey, Asset, Job, new_id
 from osdar_platform.settings import Settings
 from osdar_platform.store import ObjectStore
-from service.errors import Conflict, Invalid, NotFound
+from service.errors import Conflict, Invalid
+from service.services.ownership import owned_or_404
 from worker.orchestration.inspect import InspectionError, inspect_mesh
 
 
@@ -73,10 +74,7 @@ def create_asset(
 
 
 def get_asset(*, session: Session, owner: ApiKey, asset_id: str) -> Asset:
-    asset = session.get(Asset, asset_id)
-    if asset is None or asset.owner_id != owner.id:
-        raise NotFound(f"asset {asset_id} not found")
-    return asset
+    return owned_or_404(session, Asset, asset_id, owner=owner, what="asset")
 
 
 def list_assets(

@@ -27,6 +27,7 @@ from osdar_platform.models import (
 from osdar_platform.settings import Settings
 from service.errors import Conflict, Invalid, NotFound, TooManyRequests
 from service.schemas import JobCreate
+from service.services.ownership import owned_or_404
 
 log = logging.getLogger(__name__)
 
@@ -205,10 +206,7 @@ def submit_job(
 
 def get_job(*, session: Session, owner: ApiKey, job_id: str, everyone: bool = False) -> Job:
     """The key's job (404 for another key's, unless ``everyone``: an operator's dashboard)."""
-    job = session.get(Job, job_id)
-    if job is None or (job.owner_id != owner.id and not everyone):  # others' do not exist
-        raise NotFound(f"job {job_id} not found")
-    return job
+    return owned_or_404(session, Job, job_id, owner=owner, what="job", everyone=everyone)
 
 
 def list_jobs(

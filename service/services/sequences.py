@@ -14,6 +14,7 @@ from osdar_platform.models import ACTIVE_STATES, ApiKey, Job, Sequence, new_id
 from osdar_platform.settings import Settings
 from osdar_platform.store import ObjectStore
 from service.errors import Conflict, Forbidden, Invalid, NotFound
+from service.services.ownership import owned_or_404
 from worker.orchestration.inspect import InspectionError, inspect_sequence
 
 
@@ -124,10 +125,7 @@ def create_uploaded_sequence(
 
 
 def get_sequence(*, session: Session, owner: ApiKey, sequence_id: str) -> Sequence:
-    seq = session.get(Sequence, sequence_id)
-    if seq is None or seq.owner_id != owner.id:  # another key's sequence does not exist
-        raise NotFound(f"sequence {sequence_id} not found")
-    return seq
+    return owned_or_404(session, Sequence, sequence_id, owner=owner, what="sequence")
 
 
 def list_sequences(
