@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import uuid
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -206,4 +207,32 @@ def api(
         api.sequence_id = r.json()["id"]
         sent_tasks()  # start from an empty queue
         yield api
+    app.state.engine.dispose()
+
+
+@contextmanager
+def sqlite_api(data: Path, seq: dict[str, Any], name: str) -> Iterator[Api]:
+    """An app on SQLite (environment "test", the memory broker) with keys ``alice`` and
+    ``bob`` and a synthetic sequence ``data/name`` (SynthConfig ``seq``) registered by
+    alice: the campaign and multi-object tests, whose jobs run inline."""
+    from fastapi.testclient import TestClient
+
+    from osdar_platform.migrate import upgrade
+    from service.app import create_app
+    from worker.synth.generator import SynthConfig, generate
+
+    generate(data / name, SynthConfig(**seq))
+    url = f"sqlite:///{data}/osdar-ar.db"
+    upgrade(database_url=url)
+    settings = make_settings(data, url, environment="test", campaign_dry_run_wait_s=0.0)
+    app = create_app(settings, celery_app=memory_celery())
+    with TestClient(app) as client:
+        a = Api("sqlite", client, settings, app.state.sessions)
+        a.new_key("alice")
+        a.new_key("bob")
+        r = client.post("/v1/sequences", json={"path": str(data / name)}, headers=a.h())
+        assert r.status_code == 201, r.text
+        a.sequence_id = r.json()["id"]
+        sent_tasks()
+        yield a
     app.state.engine.dispose()

@@ -19,6 +19,7 @@ from osdar_platform.models import ACTIVE_STATES, ApiKey, Asset, Job, new_id
 from osdar_platform.settings import Settings
 from osdar_platform.store import ObjectStore
 from service.errors import Conflict, Invalid
+from service.schemas import spec_asset_ids
 from service.services.ownership import owned_or_404
 from worker.orchestration.inspect import InspectionError, inspect_mesh
 
@@ -98,7 +99,7 @@ def delete_asset(*, session: Session, owner: ApiKey, asset_id: str, store: Objec
     active_specs = session.scalars(
         select(Job.spec).where(Job.owner_id == owner.id, Job.state.in_(ACTIVE_STATES))
     )
-    if any((spec.get("object") or {}).get("asset_id") == asset_id for spec in active_specs):
+    if any(asset_id == used for spec in active_specs for _, used in spec_asset_ids(spec)):
         raise Conflict(f"asset {asset_id} is used by an active job")
     key = asset.store_key
     session.delete(asset)

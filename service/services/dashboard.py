@@ -17,6 +17,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from osdar_platform.models import ApiKey, Job, JobState, Sequence
+from service.schemas import spec_objects
 
 #: At most this many jobs in one progress poll.
 MAX_POLL_IDS = 100
@@ -89,14 +90,33 @@ def key_names(*, session: Session, ids: set[int]) -> dict[int, str]:
 
 # ---------------------------------------------------------------------------- spec
 def object_label(spec: dict[str, Any]) -> str:
-    obj = spec.get("object") or {}
-    what = obj.get("builtin") or (f"asset {obj['asset_id']}" if obj.get("asset_id") else "?")
-    scale = obj.get("scale")
-    return what if scale in (None, 1, 1.0) else f"{what} ×{scale:g}"
+    """The job's objects: ``cow``, ``rock ×2``, ``person (moving) + asset a81b``."""
+    labels = []
+    for _, entry in spec_objects(spec):
+        obj = entry.get("object") or {}
+        what = obj.get("builtin") or (f"asset {obj['asset_id']}" if obj.get("asset_id") else "?")
+        scale = obj.get("scale")
+        what = what if scale in (None, 1, 1.0) else f"{what} ×{scale:g}"
+        labels.append(what + (" (moving)" if entry.get("motion") else ""))
+    return " + ".join(labels)
 
 
 def placement_label(spec: dict[str, Any]) -> str:
-    p = spec.get("placement") or {}
+    """Where the job's objects stand (or how they move), ``; ``-separated."""
+    out = []
+    for _, entry in spec_objects(spec):
+        m = entry.get("motion")
+        if m:
+            a = ", ".join(_num(v) for v in (m.get("path") or [[]])[0])
+            out.append(
+                f"moving ({m.get('mode', 'track')}) from ({a}) at {_num(m.get('speed_mps'))} m/s"
+            )
+        else:
+            out.append(_one_placement(entry.get("placement") or {}))
+    return "; ".join(out)
+
+
+def _one_placement(p: dict[str, Any]) -> str:
     mode = p.get("mode")
     if mode == "track":
         return (

@@ -26,12 +26,10 @@ from osdar_platform.models import (
 )
 from osdar_platform.settings import Settings
 from service.errors import Conflict, Invalid, NotFound, TooManyRequests
-from service.schemas import JobCreate
+from service.schemas import JobCreate, Loc, PointPlacement
 from service.services.ownership import owned_or_404
 
 log = logging.getLogger(__name__)
-
-Loc = tuple[str | int, ...]
 
 
 def check_spec(*, spec: JobCreate, sequence: Sequence) -> list[tuple[Loc, str]]:
@@ -59,15 +57,16 @@ def check_spec(*, spec: JobCreate, sequence: Sequence) -> list[tuple[Loc, str]]:
                 )
         if first <= lo <= hi <= last and indices and not any(lo <= i <= hi for i in indices):
             errors.append((("body", "frame_range"), f"no frame of the sequence in [{lo}, {hi}]"))
-    p = spec.placement
-    if getattr(p, "mode", None) == "lidar_frame" and p.frame_idx is not None:  # type: ignore[union-attr]
-        if indices and p.frame_idx not in indices:  # type: ignore[union-attr]
-            errors.append(
-                (
-                    ("body", "placement", "frame_idx"),
-                    f"frame {p.frame_idx} is not a frame of the sequence {span}",  # type: ignore[union-attr]
+    for where, obj in spec.scene_objects():
+        p = obj.placement
+        if isinstance(p, PointPlacement) and p.mode == "lidar_frame" and p.frame_idx is not None:
+            if indices and p.frame_idx not in indices:
+                errors.append(
+                    (
+                        (*where, "placement", "frame_idx"),
+                        f"frame {p.frame_idx} is not a frame of the sequence {span}",
+                    )
                 )
-            )
     if spec.lidar and not v.get("lidar"):
         errors.append((("body", "lidar"), "the sequence has no lidar stream"))
     for cam, per_frame in (spec.clicks or {}).items():
@@ -129,10 +128,13 @@ def create_job(
     sequence = session.get(Sequence, spec.sequence_id)
     if sequence is None or sequence.owner_id != owner.id:
         raise NotFound(f"sequence {spec.sequence_id} not found (body.sequence_id)")
-    if spec.object.asset_id is not None:
-        asset = session.get(Asset, spec.object.asset_id)
-        if asset is None or asset.owner_id != owner.id:
-            raise NotFound(f"asset {spec.object.asset_id} not found (body.object.asset_id)")
+    for where, obj in spec.scene_objects():
+        asset_id = obj.object.asset_id
+        if asset_id is not None:
+            asset = session.get(Asset, asset_id)
+            if asset is None or asset.owner_id != owner.id:
+                at = ".".join(str(x) for x in (*where, "object", "asset_id"))
+                raise NotFound(f"asset {asset_id} not found ({at})")
     errors = check_spec(spec=spec, sequence=sequence)
     if errors:
         raise Invalid.many(errors)

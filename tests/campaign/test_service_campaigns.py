@@ -22,7 +22,7 @@ import pytest
 from sqlalchemy import select, update
 
 from osdar_platform.models import CampaignState, Job, JobState
-from tests.conftest_service import Api, make_settings, memory_celery, sent_tasks
+from tests.conftest_service import Api, memory_celery, sent_tasks, sqlite_api
 from worker.campaign.expand import expand
 from worker.campaign.service_expand import expand_campaign_stage
 from worker.campaign.service_finalize import final_state, finalize_after_job
@@ -39,28 +39,8 @@ SEQ = {"scene": "fire_site", "frames": 6, "scale": 0.15, "lidar_density": 0.2, "
 
 @pytest.fixture(scope="module")
 def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Api]:
-    from fastapi.testclient import TestClient
-
-    from osdar_platform.migrate import upgrade
-    from service.app import create_app
-    from worker.synth.generator import SynthConfig, generate
-
-    data = tmp_path_factory.mktemp("campaign_api")
-    generate(data / "fire_camp", SynthConfig(**SEQ))
-    url = f"sqlite:///{data}/osdar-ar.db"
-    upgrade(database_url=url)
-    settings = make_settings(data, url, environment="test", campaign_dry_run_wait_s=0.0)
-    app = create_app(settings, celery_app=memory_celery())
-    with TestClient(app) as client:
-        a = Api("sqlite", client, settings, app.state.sessions)
-        a.new_key("alice")
-        a.new_key("bob")
-        r = client.post("/v1/sequences", json={"path": str(data / "fire_camp")}, headers=a.h())
-        assert r.status_code == 201, r.text
-        a.sequence_id = r.json()["id"]
-        sent_tasks()
+    with sqlite_api(tmp_path_factory.mktemp("campaign_api"), SEQ, "fire_camp") as a:
         yield a
-    app.state.engine.dispose()
 
 
 def spec(api: Api, **kw: Any) -> dict[str, Any]:

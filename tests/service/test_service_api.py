@@ -86,7 +86,11 @@ def test_openapi_documents_every_route(api: Api) -> None:
             ok = [c for c in op["responses"] if c.startswith("2")]
             assert ok, (method, path)
     body = spec["components"]["schemas"]["JobCreate"]
-    assert {"sequence_id", "object", "placement"} <= set(body["required"])
+    assert body["required"] == ["sequence_id"]
+    # one object (with a placement or a motion) or a list of objects, never both
+    one, many = body["oneOf"]
+    assert one["required"] == ["object"] and many["required"] == ["objects"]
+    assert [a["required"] for a in one["anyOf"]] == [["placement"], ["motion"]]
 
 
 def test_openapi_states_what_the_service_checks(api: Api) -> None:

@@ -12,7 +12,8 @@ so far, or several as ``objects``, a list of ``{object, placement, motion}``
 object is annotated on its own (its own uid); they hide each other in the images and the
 lidar.
 
-Moving objects (``motion``, :class:`MotionModel`): a path of waypoints in track
+Moving objects (``motion``, :class:`MotionModel`, the API's own model from
+service/schemas.py, one for jobs, campaign variants and this spec): a path of waypoints in track
 coordinates ``(s, offset)`` (as a track placement: m from the first frame's position
 along the ego track, m left of it) or in world coordinates ``(x, y)``, walked at
 ``speed_mps`` from the first waypoint; the object faces its direction of travel (plus
@@ -33,14 +34,27 @@ Lidar origins (``lidar_origins``):
 
 from __future__ import annotations
 
+import base64
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    field_serializer,
+    field_validator,
+    model_validator,
+)
 
+from service.schemas import MotionModel
 from worker.augmentation.gauge import GaugeOutline
 from worker.augmentation.placement import PlacementError, PlacementSpec, parse_place
+
+#: A resolved uploaded asset: the mesh file's bytes and its file type (glb, obj, ...).
+MeshFile = tuple[bytes, str]
 
 #: The front cameras augmented by default (those of them the sequence has).
 DEFAULT_CAMERAS = ("rgb_center", "rgb_highres_center")
@@ -60,7 +74,7 @@ class ObjectSource(_Section):
 
     builtin: str | None = None
     mesh_path: str | None = None
-    mesh_bytes: bytes | None = Field(None, exclude=True, repr=False)
+    mesh_bytes: bytes | None = Field(None, repr=False)  # JSON: base64 (_mesh_bytes_*)
     file_type: str | None = None
     name: str | None = None
     scale: float = Field(1.0, gt=0.0, le=100.0)
@@ -70,6 +84,22 @@ class ObjectSource(_Section):
     detail: float = Field(1.0, ge=0.05, le=4.0)
     pose: str | None = None  # built-in person: standing, walking, lying, crouching, sitting
     animation_time_s: float | None = Field(None, ge=0.0, le=3600.0)  # glTF skins / morphs
+
+    @field_serializer("mesh_bytes", when_used="json")
+    def _mesh_bytes_base64(self, v: bytes | None) -> str | None:
+        """In JSON the mesh travels as base64: a job's plan record (records.py) carries
+        its spec, and a worker reading the plan back must get the same spec."""
+        return None if v is None else base64.b64encode(v).decode("ascii")
+
+    @field_validator("mesh_bytes", mode="before")
+    @classmethod
+    def _mesh_bytes_from_base64(cls, v: Any) -> Any:
+        if isinstance(v, str):
+            try:
+                return base64.b64decode(v, validate=True)
+            except ValueError as exc:
+                raise ValueError(f"mesh_bytes: not base64 ({exc})") from None
+        return v
 
     @model_validator(mode="after")
     def _one_source(self) -> ObjectSource:
@@ -148,41 +178,6 @@ class PlacementModel(_Section):
         return cls.from_spec(parse_place(text))
 
 
-class MotionModel(_Section):
-    """A moving object's path (module docstring).
-
-    mode : ``track``: waypoints are ``(s, offset)`` m in the track placement's coordinates
-        (s from the first frame's position along the ego track, offset left +);
-        ``world``: ``(x, y)`` m in the sequence's world frame (height snapped).
-    path : two or more waypoints; the object walks the polyline at ``speed_mps``.
-    start_s : seconds after the first frame of the range the object sets off (it waits at
-        the first waypoint until then).
-    end : at the last waypoint ``stop`` (stand there) or ``bounce`` (walk back, and so on).
-    yaw_deg : the object's heading relative to its direction of travel (0: its +x, the
-        front of the built-ins, leads).
-    gait : the built-in person swings legs and arms, the built-in animals their legs, in
-        step with the distance walked (renderer/assets/walk_cycle.py); other objects (and
-        a person lying, crouching or sitting) are rigid.
-    """
-
-    mode: Literal["track", "world"] = "track"
-    path: tuple[tuple[float, float], ...] = Field(min_length=2, max_length=256)
-    speed_mps: float = Field(gt=0.0, le=50.0)
-    start_s: float = Field(0.0, ge=0.0, le=3600.0)
-    end: Literal["stop", "bounce"] = "stop"
-    yaw_deg: float = 0.0
-    gait: bool = True
-
-    @model_validator(mode="after")
-    def _finite_path(self) -> MotionModel:
-        pts = np.asarray(self.path, dtype=np.float64)
-        if not np.all(np.isfinite(pts)) or not np.isfinite(self.yaw_deg):
-            raise ValueError("motion path and yaw_deg must be finite")
-        if float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) < 1e-3:
-            raise ValueError("motion path must have a length (its waypoints all coincide)")
-        return self
-
-
 class SceneObject(_Section):
     """One object of a job: what (``object``), where (``placement``) and, for a moving
     object, its ``motion`` (which then decides the position; the placement is not used)."""
@@ -248,7 +243,7 @@ class AugmentSpec(_Section):
         """``objects`` of one object is the single-object form (one spelling per job:
         readers of ``object`` / ``placement``, e.g. the evaluation, see it)."""
         if isinstance(data, dict) and data.get("object") is None:
-            objs = data.get("objects") or ()
+            objs: Any = data.get("objects") or ()
             if len(objs) == 1:
                 one = objs[0]
                 one = one.model_dump() if isinstance(one, SceneObject) else dict(one)
@@ -316,13 +311,13 @@ class AugmentSpec(_Section):
         cls,
         d: dict[str, Any],
         *,
-        mesh_bytes: bytes | None = None,
-        file_type: str | None = None,
+        assets: Mapping[str, MeshFile] | None = None,
     ) -> AugmentSpec:
         """From the service's ``JobCreate`` JSON (service/schemas.py).
 
-        An ``object.asset_id`` must be resolved by the caller (the asset store):
-        pass the asset's ``mesh_bytes`` and ``file_type``. ``render.shadow`` false sets
+        Every object's ``asset_id`` must be resolved by the caller (the asset store, the
+        owner checked): ``assets`` maps each asset id to its mesh bytes and file type
+        (``service.schemas.spec_asset_ids`` lists them). ``render.shadow`` false sets
         the shadow strength to 0; ``clicks`` ({camera: {frame: [u, v]}}) become the
         preparation's clicks of a landmark named ``job``; ``gauge`` (GaugeOutline's
         fields) sets the envelope of the gauge labels; ``objects`` / ``motion``: several
@@ -332,12 +327,11 @@ class AugmentSpec(_Section):
             if d.get("object") is not None:
                 raise ValueError("give either 'object' or 'objects', not both")
             objects = tuple(
-                _scene_object(o, f"objects[{i}]", mesh_bytes, file_type)
-                for i, o in enumerate(d["objects"])
+                _scene_object(o, f"objects[{i}]", assets or {}) for i, o in enumerate(d["objects"])
             )
-            one = {"object": None, "objects": objects}
+            one: dict[str, Any] = {"object": None, "objects": objects}
         else:
-            only = _scene_object(d, "", mesh_bytes, file_type)
+            only = _scene_object(d, "", assets or {})
             one = {"object": only.object, "placement": only.placement, "motion": only.motion}
         render = dict(d.get("render") or {})
         shadow = render.pop("shadow", True)
@@ -362,9 +356,7 @@ class AugmentSpec(_Section):
         )
 
 
-def _scene_object(
-    d: dict[str, Any], where: str, mesh_bytes: bytes | None, file_type: str | None
-) -> SceneObject:
+def _scene_object(d: dict[str, Any], where: str, assets: Mapping[str, MeshFile]) -> SceneObject:
     """A job spec's ``{object, placement, motion}`` (``where`` names it in errors)."""
     at = f"{where}: " if where else ""
     obj = d.get("object") or {}
@@ -375,10 +367,9 @@ def _scene_object(
             seed=int(obj.get("seed", 0)),  # a campaign's variation seed
         )
     elif obj.get("asset_id") is not None:
-        if mesh_bytes is None or file_type is None:
-            raise ValueError(
-                f"{at}object asset {obj['asset_id']!r}: pass its mesh_bytes and file_type"
-            )
+        if obj["asset_id"] not in assets:
+            raise ValueError(f"{at}object asset {obj['asset_id']!r} was not resolved (assets)")
+        mesh_bytes, file_type = assets[obj["asset_id"]]
         source = ObjectSource(
             mesh_bytes=mesh_bytes, file_type=file_type, scale=float(obj.get("scale", 1.0))
         )
@@ -409,6 +400,7 @@ def _parse_point(text: str) -> tuple[float, float, float] | None:
 __all__ = [
     "DEFAULT_CAMERAS",
     "AugmentSpec",
+    "MeshFile",
     "MotionModel",
     "ObjectSource",
     "PlacementError",

@@ -90,8 +90,9 @@ order is one object, where the placement applies to the sequence and the obstacl
 ``objects_per_sequence`` at a time into one variant (the last group may be smaller).
 Explicit placements are drawn once.
 
-This module imports only pydantic and the service's request schemas, whose ``ObjectSpec``
-and ``Placement`` it reuses: the spec can be checked where the pipeline is not installed.
+This module imports only pydantic and the service's request schemas, whose ``ObjectSpec``,
+``Placement`` and ``GaugeOptions`` it reuses: the spec can be checked where the pipeline is
+not installed. A variant is a job of the service's ``JobCreate`` format.
 """
 
 from __future__ import annotations
@@ -112,7 +113,14 @@ from pydantic import (
     model_validator,
 )
 
-from service.schemas import CameraName, ObjectSpec, Placement, RenderOptions, Strategy
+from service.schemas import (
+    CameraName,
+    GaugeOptions,
+    ObjectSpec,
+    Placement,
+    RenderOptions,
+    Strategy,
+)
 from worker.campaign.variant import Issue
 
 Zone = Literal["track", "gauge_edge", "beside", "platform", "crossing"]
@@ -214,6 +222,8 @@ class Obstacle(ObjectSpec):
 
     @model_validator(mode="after")
     def _seeds_for_builtins(self) -> Obstacle:
+        if "seed" in self.model_fields_set:
+            raise ValueError("an obstacle's variation seeds are 'seeds', a list (e.g. [0, 1])")
         if self.seeds is not None and self.builtin is None:
             raise ValueError("'seeds' vary built-in obstacles only, not an uploaded asset")
         if self.seeds is not None and len(set(self.seeds)) != len(self.seeds):
@@ -230,9 +240,8 @@ class Obstacle(ObjectSpec):
         return str(self.builtin) if self.builtin is not None else f"asset:{self.asset_id}"
 
     def job_object(self, seed: int) -> dict[str, Any]:
-        """Today's job ``object`` for one variation. The variation seed is written as
-        ``seed`` when it is not 0 (the service's ObjectSpec has no ``seed`` field yet;
-        :meth:`AugmentSpec.from_job_spec` reads it)."""
+        """Today's job ``object`` for one variation (the service's ``ObjectSpec``). The
+        variation seed is written as ``seed`` when it is not 0, as ObjectSpec writes it."""
         out: dict[str, Any] = (
             {"builtin": self.builtin} if self.builtin is not None else {"asset_id": self.asset_id}
         )
@@ -343,17 +352,6 @@ class Constraints(_Spec):
     min_spacing_m: float = Field(5.0, ge=0.0, le=1000.0)
     clearance_m: float = Field(0.1, ge=0.0, le=10.0)
     max_attempts: int = Field(400, ge=1, le=100_000)
-
-
-class GaugeOptions(_Spec):
-    """The clearance envelope of the gauge labels (the fields of
-    :class:`~worker.augmentation.gauge.GaugeOutline`, same defaults; None: its default)."""
-
-    half_width_m: float | None = Field(None, gt=0.0, le=5.0)
-    margin_m: float | None = Field(None, ge=0.0, le=5.0)
-    floor_m: float | None = Field(None, ge=-1.0, le=2.0)
-    height_m: float | None = Field(None, gt=0.0, le=10.0)
-    curve_widening_m2: float | None = Field(None, ge=0.0, le=50.0)
 
 
 class JobOptions(_Spec):

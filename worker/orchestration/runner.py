@@ -51,6 +51,7 @@ from osdar_platform.models import Asset, Job, JobState, Sequence
 from osdar_platform.retry import RetryingStore
 from osdar_platform.settings import Settings, get_settings
 from osdar_platform.store import ObjectStore, StoreError, store_from_url
+from service.schemas import spec_asset_ids
 from worker.augmentation.finish import finish_augmentation
 from worker.augmentation.frame import ChunkResult, augment_frames
 from worker.augmentation.placement import PlacementError
@@ -62,7 +63,7 @@ from worker.augmentation.records import (
     load_chunk,
     read_plan,
 )
-from worker.augmentation.spec import AugmentSpec
+from worker.augmentation.spec import AugmentSpec, MeshFile
 from worker.evaluation.evaluate import evaluate_sequence, plot_rpe_jitter
 from worker.orchestration import lease, state
 from worker.orchestration.lease import database_unreachable
@@ -144,6 +145,7 @@ class JobRun:
                     raise JobSuperseded(f"job {self.job_id} does not exist")
                 seq = s.get(Sequence, job.sequence_id) if job.sequence_id else None
                 self._info = {
+                    "owner_id": job.owner_id,
                     "spec": dict(job.spec or {}),
                     "progress_total": job.progress_total,
                     "sequence": None
@@ -432,19 +434,22 @@ def prepare_for_job(
 
 # ---------------------------------------------------------------------------- augment
 def _augment_spec(run: JobRun) -> AugmentSpec:
-    """The augmentation's spec from the job spec (an uploaded mesh read from the store)."""
+    """The augmentation's spec from the job spec: every object's uploaded mesh (the one
+    ``object`` or any of ``objects``) read from the store, each asset the job owner's."""
 
     spec = run.spec
-    asset_id = (spec.get("object") or {}).get("asset_id")
-    if asset_id is None:
-        return AugmentSpec.from_job_spec(spec)
-    with session_scope(run.settings) as s:
-        asset = s.get(Asset, asset_id)
-        where = None if asset is None else (asset.store_key, asset.file_type)
-    if where is None:
-        raise StageError(f"asset {asset_id} was deleted")
-    data = b"".join(run.store.open_read(where[0]))
-    return AugmentSpec.from_job_spec(spec, mesh_bytes=data, file_type=where[1])
+    assets: dict[str, MeshFile] = {}
+    for where, asset_id in spec_asset_ids(spec):
+        if asset_id in assets:
+            continue
+        with session_scope(run.settings) as s:
+            asset = s.get(Asset, asset_id)
+            if asset is not None and asset.owner_id == run.info["owner_id"]:
+                key, file_type = asset.store_key, asset.file_type
+            else:  # deleted since the submission, or never the owner's
+                raise StageError(f"{where}: asset {asset_id} was deleted")
+        assets[asset_id] = (b"".join(run.store.open_read(key)), file_type)
+    return AugmentSpec.from_job_spec(spec, assets=assets)
 
 
 def _plan(run: JobRun) -> Plan:
