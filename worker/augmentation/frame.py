@@ -38,9 +38,9 @@ from renderer.lidar_cast import (
     LidarCastResult,
     LidarNoise,
     cast_object,
-    estimate_lidar_noise,
     point_origins,
 )
+from renderer.lidar_noise import measure_lidar_noise
 from renderer.mesh import ObjectMesh, ProxyMesh
 from renderer.object_render import ObjectRenderer
 from worker.augmentation.annotations import (
@@ -438,17 +438,15 @@ def lidar_noise_near(
     fields: dict[str, NDArray],
     origins: dict | F64,
     spheres: list[tuple[F64, float]],
-    *,
-    seed: int = 0,
 ) -> dict[int, LidarNoise]:
     """The real cloud's range noise and dropout per sensor_index around the objects.
 
     spheres : per object its bounding sphere (centre (3,), radius) in the base frame;
-    :func:`renderer.lidar_cast.estimate_lidar_noise` measures each one's shell, and
+    :func:`renderer.lidar_noise.measure_lidar_noise` measures each one's shell, and
     with several objects a sensor gets the median of its finite estimates (points
     summed, rings the most found).
     """
-    per = [estimate_lidar_noise(fields, origins, c, r, seed=seed) for c, r in spheres]
+    per = [measure_lidar_noise(fields, origins, c, r) for c, r in spheres]
     out: dict[int, LidarNoise] = {}
     for s in sorted({k for est in per for k in est}):
         got = [est[s] for est in per if s in est]
@@ -637,7 +635,7 @@ def _lidar_frame(
     T_base_objs = [T_base_world @ o.pose(stream, frame) for o in plan.objects]
     spheres = [_bounding_sphere(m, T) for m, T in zip(meshes, T_base_objs, strict=True)]
     noise = (
-        lidar_noise_near(cloud.fields, plan.lidar_origins, spheres, seed=frame)
+        lidar_noise_near(cloud.fields, plan.lidar_origins, spheres)
         if plan.spec.render.lidar_noise
         else None
     )

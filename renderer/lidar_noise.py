@@ -1,0 +1,276 @@
+"""A lidar's range noise and dropout, measured on the real points near an object.
+
+Object points cast into a real cloud (:func:`renderer.lidar_cast.cast_object`) get the
+range noise and the dropout rate of their own sensor; :func:`measure_lidar_noise` measures
+both per ``sensor_index`` on the real points in a shell around the object.
+
+Scan lines from the timestamps
+    A sensor's points sorted by ``timestamp`` fall into *columns*: runs of equal times
+    (a spinning lidar fires a column of beams at once; a rosette fires one point at a
+    time, a column of one). Two times more than half the median time step apart start a
+    new column. A point's scan-line neighbours are, in the columns ``SCAN_OFFSETS`` away,
+    the point of the nearest elevation (within half the column's median elevation step:
+    the same beam), or for one-point columns simply the points fired just before and
+    after. Along a scan line neighbours are a fraction of a degree apart and, on a track
+    bed, run across the track (along a sleeper, not over the sleeper/crib steps).
+
+Range noise: inverse range is linear on a plane
+    For a plane ``n . x = d`` seen from an origin ``o`` along the unit direction ``u``,
+    the range is ``r = (d - n . o) / (n . u)``, so ``q = 1 / r = g . u`` with
+    ``g = n / (d - n . o)``: the inverse range is a *linear* function of the direction,
+    whatever the origin and the incidence. Per point ``p``:
+
+    1. ``g`` by weighted least squares on its four scan-line neighbours (the point itself
+       left out; weights ``r^4``: a range error of std sigma is an error of std
+       ``sigma / r^2`` in ``q``; the pseudo-inverse where the directions span only a
+       plane), and the prediction ``g . u_p``;
+    2. the standardised residual ``z = (q_p - g . u_p) r_p^2 / sqrt(1 + h)``, ``h =
+       r_p^4 u_p^T A^+ u_p`` (``A = sum w u u^T``): ``h`` is the fit's own prediction
+       variance (its leverage: the three parameters fitted), so on a plane with range
+       noise sigma, ``z`` has std sigma, in metres along the ray. Points with ``h >
+       MAX_LEVERAGE`` are left out (a choice from the geometry alone: no bias);
+    3. the scale of ``z``: a two-component zero-mean Gaussian scale mixture fitted by EM
+       (Dempster, Laird & Rubin 1977): a core of std sigma (the noise) and a wide
+       component (at least ``2 sigma``: neighbours across an edge, a rail, a corner,
+       vegetation). Its start is ``1.4826 median |z|``. The core's sigma is the estimate.
+
+    A surface's roughness at the scale of four scan steps counts as noise.
+
+Dropout: missing times on a scan line
+    Along a scan line the columns are fired at a regular time step (the median column
+    step); between two returns of one beam ``g`` columns apart, ``g - 1`` rays of that
+    beam returned nothing. Counted only within one surface: ``g < MAX_GAP_STEPS`` and the
+    two ends' ranges within ``SURFACE_RANGE_STEP`` of their mean (an object's edge against
+    a far background, or a sky gap, is not a dropout). ``dropout = missing / (missing +
+    returned)`` over the steps that qualify.
+
+Without a ``timestamp`` field the neighbours are the ``NOISE_NEIGHBOURS`` nearest in
+direction (a 2-D patch, more often across an edge) and the dropout is 0 (``rings`` 0).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from renderer.lidar_cast import LidarNoise, point_origins
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+NOISE_SHELL_M = 10.0
+WIDE_SHELL_M = 30.0  # when the shell has fewer than MIN_NOISE_POINTS usable residuals
+SCAN_OFFSETS = (-2, -1, 1, 2)
+NOISE_NEIGHBOURS = 8
+NOISE_MAX_POINTS = 8000
+MIN_NOISE_POINTS = 60
+MAX_LEVERAGE = 10.0
+MAX_GAP_STEPS = 6
+SURFACE_RANGE_STEP = 0.1
+EM_ITERATIONS = 60
+SCAN_MARGIN_M = 2.0
+_MAD_TO_SIGMA = 1.4826
+
+
+def measure_lidar_noise(
+    fields: Mapping[str, np.ndarray],
+    origins_base: Mapping[int, ArrayLike] | ArrayLike,
+    centre_base: ArrayLike,
+    radius: float,
+    *,
+    shell_m: float = NOISE_SHELL_M,
+) -> dict[int, LidarNoise]:
+    """Range noise and dropout per sensor_index (module docstring) from the real points in
+    the shell ``radius < |p - centre_base| < radius + shell_m`` (base frame); a sensor
+    with too few usable points there is measured in a shell of ``WIDE_SHELL_M``.
+
+    fields : the cloud's columns (x, y, z, optional timestamp and sensor_index);
+    origins_base : per sensor_index its origin (3,) in the base frame, or one (3,) for
+    all; centre_base : (3,). Returns {sensor_index: LidarNoise} (key 0 for a cloud
+    without sensor_index).
+    """
+    xyz = np.stack([np.asarray(fields[k], dtype=np.float64) for k in "xyz"], axis=1)
+    o_all = point_origins(fields, origins_base)
+    t_all = np.asarray(fields["timestamp"], np.float64) if "timestamp" in fields else None
+    d = np.linalg.norm(xyz - np.asarray(centre_base, np.float64).reshape(1, 3), axis=1)
+    sidx = (np.asarray(fields["sensor_index"]).astype(np.int64) if "sensor_index" in fields
+            else np.zeros(len(xyz), np.int64))  # fmt: skip
+    out: dict[int, LidarNoise] = {}
+    ok = np.isfinite(d)
+    for s in np.unique(sidx[ok & (d > radius) & (d < radius + shell_m)]):
+        mine = np.flatnonzero(ok & (sidx == s))
+        for outer in (radius + shell_m, radius + max(shell_m, WIDE_SHELL_M)):
+            shell = mine[(d[mine] > radius) & (d[mine] < outer)]
+            if len(shell) > NOISE_MAX_POINTS:  # the nearest: a smaller ball
+                outer = float(np.sort(d[shell])[NOISE_MAX_POINTS - 1])
+            # scan lines over the ball grown by a margin (the object's inside too), so
+            # that a line leaving the shell for a moment is not a gap; the shell's own
+            # points are measured
+            sel = mine[d[mine] < outer + SCAN_MARGIN_M]
+            inside = (d[sel] > radius) & (d[sel] <= outer)
+            p, o = xyz[sel], o_all[sel]
+            t = None if t_all is None else t_all[sel]
+            z = standardised_residuals(p, o, t)[inside]
+            z = z[np.isfinite(z)]
+            if len(z) >= MIN_NOISE_POINTS:
+                break
+        sigma = core_sigma(z)
+        drop, rings = dropout_rate(p, o, t, inside)
+        out[int(s)] = LidarNoise(sigma, drop, int(inside.sum()), rings)
+        logger.debug("lidar noise sensor %d: %d points (%d residuals), range sigma %.4f m, "
+                     "dropout %.4f (%d rings)", s, inside.sum(), len(z), sigma, drop,
+                     rings)  # fmt: skip
+    return out
+
+
+def scan_columns(t: F64) -> NDArray[np.int64] | None:
+    """(n,) column number of each point (runs of equal timestamps in time order, module
+    docstring); None when all times are equal."""
+    order = np.argsort(t, kind="stable")
+    gap = np.diff(t[order])
+    pos = gap[gap > 0]
+    if len(pos) == 0:
+        return None
+    col_sorted = np.concatenate([[0], np.cumsum(gap > 0.5 * np.median(pos))])
+    col = np.empty(len(t), np.int64)
+    col[order] = col_sorted
+    return col
+
+
+def scan_neighbours(u: F64, t: F64, offsets: tuple[int, ...] = SCAN_OFFSETS) -> NDArray[np.int64]:
+    """(n, len(offsets)) index of each point's neighbour ``offsets`` columns away on its
+    scan line (module docstring), -1 where there is none. u : (n, 3) unit directions;
+    t : (n,) timestamps."""
+    n = len(u)
+    out = np.full((n, len(offsets)), -1, np.int64)
+    col = scan_columns(t)
+    if col is None:
+        return out
+    if col.max() + 1 > 0.5 * n:  # one point per time: the time order is the scan line
+        order = np.lexsort((np.arange(n), col))
+        rank = np.empty(n, np.int64)
+        rank[order] = np.arange(n)
+        for j, step in enumerate(offsets):
+            k = rank + step
+            ok = (k >= 0) & (k < n)
+            out[ok, j] = order[k[ok]]
+        return out
+    el = np.degrees(np.arcsin(np.clip(u[:, 2], -1.0, 1.0))) + 90.0  # [0, 180]
+    key = col * 1000.0 + el
+    order = np.argsort(key)
+    ks = key[order]
+    dk = np.diff(ks)[np.diff(col[order]) == 0]
+    tol = 0.5 * float(np.median(dk[dk > 1e-9])) if np.any(dk > 1e-9) else 0.05
+    for j, step in enumerate(offsets):
+        want = (col + step) * 1000.0 + el
+        at = np.searchsorted(ks, want)
+        best, gap = np.full(n, -1, np.int64), np.full(n, np.inf)
+        for c in (at - 1, at):
+            ok = (c >= 0) & (c < n)
+            cc = np.where(ok, c, 0)
+            dist = np.abs(ks[cc] - want)
+            better = ok & (dist < gap) & (col[order[cc]] == col + step)
+            best[better], gap[better] = order[cc[better]], dist[better]
+        good = gap < tol
+        out[good, j] = best[good]
+    return out
+
+
+def standardised_residuals(p: F64, o: F64, t: F64 | None) -> F64:
+    """Per point (n, 3) with its origin (n, 3) and timestamp (n,): the standardised
+    inverse-range residual ``z`` (m, module docstring) against its scan-line neighbours
+    (without times: its nearest neighbours in direction); NaN where it has none."""
+    n = len(p)
+    z = np.full(n, np.nan)
+    if n < len(SCAN_OFFSETS) + 1:
+        return z
+    v = p - o
+    r = np.linalg.norm(v, axis=1)
+    if np.any(r <= 1e-6):
+        return z
+    u = v / r[:, None]
+    if t is not None:
+        nb = scan_neighbours(u, t)
+    else:
+        k = min(NOISE_NEIGHBOURS, n - 1)
+        found = np.asarray(cKDTree(u).query(u, k=k + 1)[1], np.int64)
+        nb = found[:, 1:]
+    ok = np.all(nb >= 0, axis=1)
+    if not ok.any():
+        return z
+    un, rn = u[nb[ok]], r[nb[ok]]  # (m, k, 3), (m, k)
+    w = rn**4
+    scale = w.mean(axis=1)
+    A = np.einsum("nk,nki,nkj->nij", w, un, un) / scale[:, None, None]
+    b = np.einsum("nk,nki->ni", w / rn, un) / scale[:, None]
+    Ainv = np.linalg.pinv(A, rcond=1e-14, hermitian=True)
+    g = np.einsum("nij,nj->ni", Ainv, b)
+    uo, ro = u[ok], r[ok]
+    lev = np.einsum("ni,nij,nj->n", uo, Ainv, uo) / scale * ro**4
+    zo = (1.0 / ro - np.einsum("ni,ni->n", g, uo)) * ro**2 / np.sqrt(1.0 + lev)
+    zo[lev > MAX_LEVERAGE] = np.nan
+    z[ok] = zo
+    return z
+
+
+def core_sigma(z: F64) -> float:
+    """Std of the core of a zero-mean two-Gaussian scale mixture fitted to ``z`` by EM
+    (module docstring); NaN for fewer than ``MIN_NOISE_POINTS`` values."""
+    z = np.asarray(z, np.float64)
+    z = z[np.isfinite(z)]
+    if len(z) < MIN_NOISE_POINTS:
+        return float("nan")
+    z2 = z * z
+    s1 = max(_MAD_TO_SIGMA * float(np.median(np.abs(z))), 1e-9)
+    s2 = max(3.0 * s1, float(np.sqrt(z2.mean())))
+    eps = 0.3
+    for _ in range(EM_ITERATIONS):
+        l1 = (1.0 - eps) / s1 * np.exp(-0.5 * z2 / s1**2)
+        l2 = eps / s2 * np.exp(-0.5 * z2 / s2**2)
+        w = l1 / np.maximum(l1 + l2, 1e-300)
+        s1 = max(float(np.sqrt(np.sum(w * z2) / max(w.sum(), 1e-12))), 1e-9)
+        s2 = max(float(np.sqrt(np.sum((1.0 - w) * z2) / max((1.0 - w).sum(), 1e-12))), 2 * s1)
+        eps = float(np.clip(1.0 - w.mean(), 1e-6, 1.0 - 1e-6))
+    return s1
+
+
+def dropout_rate(
+    p: F64, o: F64, t: F64 | None, counted: NDArray[np.bool_] | None = None
+) -> tuple[float, int]:
+    """(dropout fraction, rings) of one sensor's points (n, 3) from their origins (n, 3)
+    and timestamps (n,): missing steps along the scan lines within one surface (module
+    docstring), over the steps that start at a ``counted`` point (n,) (default all).
+    rings: the median points per column (the beams; 0 for one point per
+    column, a rosette). (0, 0) without times."""
+    if t is None or len(p) < 20:
+        return 0.0, 0
+    col = scan_columns(t)
+    if col is None:
+        return 0.0, 0
+    counts = np.bincount(col)
+    rings = int(np.median(counts)) if np.median(counts) > 1 else 0
+    t_col = np.bincount(col, weights=t) / np.maximum(counts, 1)
+    step = float(np.median(np.diff(t_col)))
+    if not np.isfinite(step) or step <= 0:
+        return 0.0, 0
+    v = p - o
+    r = np.linalg.norm(v, axis=1)
+    u = v / np.maximum(r, 1e-12)[:, None]
+    # each point's next return on its scan line: the first of the next columns
+    nb = scan_neighbours(u, t, tuple(range(1, MAX_GAP_STEPS)))
+    has = nb >= 0
+    first = np.argmax(has, axis=1)
+    nxt = np.where(has.any(axis=1), nb[np.arange(len(p)), first], -1)
+    ok = (nxt >= 0) & (np.ones(len(p), bool) if counted is None else counted)
+    g = np.round((t[nxt[ok]] - t[ok]) / step)
+    same = np.abs(r[nxt[ok]] - r[ok]) < SURFACE_RANGE_STEP * 0.5 * (r[nxt[ok]] + r[ok])
+    use = same & (g >= 1) & (g < MAX_GAP_STEPS)
+    missing, returned = float(np.sum(g[use] - 1.0)), int(use.sum())
+    if returned == 0:
+        return 0.0, rings
+    return missing / (missing + returned), rings
