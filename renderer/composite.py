@@ -11,7 +11,13 @@
    ``L' = mu_r' + (L - mu_o) * k`` with ``mu_r' = mu_o + LAB_MEAN_BLEND (mu_r - mu_o)`` and
    ``k = (sd_r / sd_o) ** LAB_STD_BLEND`` (k clipped to [0.5, 2]).
 2. **Blur** of the premultiplied object layer (colour x alpha and alpha together, so
-   edges stay consistent): a Gaussian with sigma = sqrt(sigma_optics^2 + sigma_defocus^2)
+   edges stay consistent). With ``match_sharpness`` (default) the Gaussian is the
+   frame's own: the blur of the real step edges in the ROI grown by ``NOISE_WINDOW_PX``
+   (object excluded; :mod:`renderer.frame_blur`, from the edges across the motion
+   direction, so the motion blur below is not counted twice), less the anti-aliased
+   coverage's own pixel box (``PIXEL_BOX_VAR_PX2``), and never below the defocus at the
+   object's distance (the real edges around may be farther). Without it, or with too
+   few edges, the lens model: a Gaussian with sigma = sqrt(sigma_optics^2 + sigma_defocus^2)
    where sigma_optics = ``OPTICS_SIGMA_PX`` x image scale (a real lens and demosaicing
    never give a one-pixel-sharp edge) and sigma_defocus = fx x ``APERTURE_M`` /
    (4 x distance) (the blur disc of a lens focused at infinity, aperture diameter
@@ -20,7 +26,8 @@
    motion, length ``|motion_uv_per_m| x speed x exposure`` px (the train's forward motion
    during the exposure).
 3. **Soft edges**: coverage feathered with a Gaussian of ``FEATHER_SIGMA_PX`` (also when
-   ``blur=False``), on top of the renderer's anti-aliased coverage.
+   ``blur=False``; with the lens model combined with its Gaussian; a measured frame blur
+   includes it), on top of the renderer's anti-aliased coverage.
 4. **Shadow**: real pixels (linear) x (1 - shadow_strength x shadow), shadow blurred like
    the object.
 5. **Pixel offset**: the object and shadow layers are shifted by ``pixel_offset`` (du,
@@ -47,6 +54,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from renderer.frame_blur import estimate_blur_sigma
 from renderer.lighting import linear_to_srgb, srgb_to_linear
 from renderer.object_render import ObjectRender
 from renderer.sensor_noise import NoiseProfile, add_noise, estimate_noise, noise_weight
@@ -60,21 +68,62 @@ LAB_STD_BLEND = 0.5
 OPTICS_SIGMA_PX = 0.6  # at the sensor's full resolution
 APERTURE_M = 0.004  # effective aperture diameter of the front cameras (assumed)
 FEATHER_SIGMA_PX = 0.5
+PIXEL_BOX_VAR_PX2 = 1.0 / 12.0  # the anti-aliased coverage's 1-px box
 NOISE_WINDOW_PX = 48
 _CHANGE_EPS = 1.0 / 4096.0
 _SRGB_LUT = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
 
 
-def blur_sigma_px(render: ObjectRender) -> float:
-    """Gaussian sigma (px) of the object's optical blur at its distance (see module doc)."""
-    scale = render.pixel_scale if render.pixel_scale > 0 else 1.0
-    s_opt = OPTICS_SIGMA_PX * scale
+def defocus_sigma_px(render: ObjectRender) -> float:
+    """Gaussian sigma (px) of the lens's defocus at the object's distance (module doc)."""
     d = render.distance_m if np.isfinite(render.distance_m) and render.distance_m > 0 else 1e9
     # Median visible depth is the better distance when the object is there.
     if render.depth.size and np.any(np.isfinite(render.depth)):
         d = float(np.nanmedian(render.depth))
-    s_dof = render.focal_px * APERTURE_M / (4.0 * max(d, 0.1))
-    return float(np.hypot(s_opt, s_dof))
+    return float(render.focal_px * APERTURE_M / (4.0 * max(d, 0.1)))
+
+
+def blur_sigma_px(render: ObjectRender) -> float:
+    """Gaussian sigma (px) of the object's optical blur at its distance (see module doc)."""
+    scale = render.pixel_scale if render.pixel_scale > 0 else 1.0
+    return float(np.hypot(OPTICS_SIGMA_PX * scale, defocus_sigma_px(render)))
+
+
+def _window(render: ObjectRender, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
+    """The render's ROI grown by ``NOISE_WINDOW_PX`` inside a frame of ``shape``."""
+    u0, v0, u1, v1 = render.roi  # type: ignore[misc]
+    H, W = shape[:2]
+    m = NOISE_WINDOW_PX
+    return max(u0 - m, 0), max(v0 - m, 0), min(u1 + m, W), min(v1 + m, H)
+
+
+def _object_mask(render: ObjectRender, window: tuple[int, int, int, int]) -> NDArray[np.bool_]:
+    a0, b0, a1, b1 = window
+    u0, v0, u1, v1 = render.roi  # type: ignore[misc]
+    out = np.zeros((b1 - b0, a1 - a0), bool)
+    out[v0 - b0 : v1 - b0, u0 - a0 : u1 - a0] = render.alpha > 0.02
+    return out
+
+
+def frame_blur(
+    frame_rgb: NDArray[np.uint8], render: ObjectRender, motion_uv: tuple[float, float]
+) -> float | None:
+    """The frame's step-edge blur sigma (px) around the render's object, from the edges
+    across ``motion_uv`` (module doc, step 2); None: too few edges."""
+    if render.roi is None:
+        return None
+    win = _window(render, frame_rgb.shape)
+    return estimate_blur_sigma(frame_rgb, win, _object_mask(render, win), motion_uv)
+
+
+def gaussian_sigma_px(render: ObjectRender, frame_sigma: float | None) -> float:
+    """The Gaussian the object layer gets (module doc, steps 2 and 3): the frame's own
+    blur less the coverage's pixel box (1/12 px^2), never below the lens's defocus at the
+    object's distance; without a frame estimate the lens model with the feather."""
+    if frame_sigma is None:
+        return float(np.hypot(blur_sigma_px(render), FEATHER_SIGMA_PX))
+    own = float(np.sqrt(max(frame_sigma**2 - PIXEL_BOX_VAR_PX2, 0.0)))
+    return max(own, defocus_sigma_px(render))
 
 
 def _gauss(img: F32, sigma: float) -> F32:
@@ -147,13 +196,8 @@ def frame_noise(frame_rgb: NDArray[np.uint8], render: ObjectRender) -> NoiseProf
     """The frame's noise profile around the render's object (module doc, step 7)."""
     if render.roi is None:
         return None
-    u0, v0, u1, v1 = render.roi
-    H, W = frame_rgb.shape[:2]
-    m = NOISE_WINDOW_PX
-    a0, b0, a1, b1 = max(u0 - m, 0), max(v0 - m, 0), min(u1 + m, W), min(v1 + m, H)
-    exclude = np.zeros((b1 - b0, a1 - a0), bool)
-    exclude[v0 - b0 : v1 - b0, u0 - a0 : u1 - a0] = render.alpha > 0.02
-    prof = estimate_noise(frame_rgb, (a0, b0, a1, b1), exclude)
+    win = _window(render, frame_rgb.shape)
+    prof = estimate_noise(frame_rgb, win, _object_mask(render, win))
     if prof is None:
         log.debug("noise: too few flat pixels around roi %s: none added", render.roi)
     return prof
@@ -170,6 +214,7 @@ def composite(
     shadow_strength: float = 0.6,
     pixel_offset: tuple[float, float] = (0.0, 0.0),
     match_noise: bool = True,
+    match_sharpness: bool = True,
     noise_seed: int = 0,
 ) -> NDArray[np.uint8]:
     """The frame (H, W, 3) uint8 sRGB with the rendered object (and its shadow) blended in.
@@ -200,10 +245,12 @@ def composite(
 
     sigma = FEATHER_SIGMA_PX
     if blur:
-        sigma = float(np.hypot(blur_sigma_px(render), FEATHER_SIGMA_PX))
         vec = np.asarray(render.motion_uv_per_m, np.float64) * speed_mps * exposure_s
-        if np.all(np.isfinite(vec)):
-            layer[..., :4] = _motion(np.ascontiguousarray(layer[..., :4]), (vec[0], vec[1]))
+        motion = (float(vec[0]), float(vec[1])) if np.all(np.isfinite(vec)) else (0.0, 0.0)
+        measured = frame_blur(frame, render, motion) if match_sharpness else None
+        sigma = gaussian_sigma_px(render, measured)
+        if motion != (0.0, 0.0):
+            layer[..., :4] = _motion(np.ascontiguousarray(layer[..., :4]), motion)
     layer = np.dstack([_gauss(np.ascontiguousarray(layer[..., :4]), sigma),
                        _gauss(np.ascontiguousarray(layer[..., 4]), sigma)])  # fmt: skip
     du, dv = float(pixel_offset[0]), float(pixel_offset[1])
