@@ -8,7 +8,8 @@ variant has finished (worker/campaign/service_finalize.py). The API sends those 
 (:class:`~service.deps.Dispatcher`) and, when it sees a campaign whose message got lost
 (PENDING past the grace, or EXPANDING without a heartbeat for longer than a task may run)
 or whose variants are all finished without a manifest, sends them again (:func:`nudge`,
-on every GET of the campaign): both tasks are idempotent.
+on every GET of the campaign; the workers' reaper does the same for every campaign):
+both tasks are idempotent.
 """
 
 from __future__ import annotations
@@ -18,14 +19,12 @@ import logging
 import re
 import time
 from collections.abc import Callable
-from datetime import timedelta
 from typing import Any
 
-from sqlalchemy import case, func, or_, select, update
+from sqlalchemy import case, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from osdar_platform.db import updated_rows
 from osdar_platform.models import (
     TERMINAL_STATES,
     ApiKey,
@@ -38,7 +37,6 @@ from osdar_platform.models import (
     Sequence,
     utcnow,
 )
-from osdar_platform.settings import Settings
 from service.campaign_schemas import (
     CampaignDetail,
     CampaignIssue,
@@ -52,12 +50,11 @@ from service.errors import Conflict, Invalid
 from service.schemas import ID_PATTERN, Progress
 from service.services.ownership import owned_or_404
 from worker.campaign.spec import CampaignSpec
+from worker.orchestration.queue import nudge_campaign as nudge
 
 log = logging.getLogger(__name__)
 
 Loc = tuple[str | int, ...]
-#: A finalize asked for and not done within this long is asked for again.
-FINALIZE_RETRY_S = 30.0
 
 
 # ---------------------------------------------------------------------------- checks
@@ -343,60 +340,6 @@ def detail(session: Session, c: Campaign, *, limit: int, offset: int) -> Campaig
 
 
 # ---------------------------------------------------------------------------- actions
-def nudge(
-    *,
-    session: Session,
-    campaign: Campaign,
-    settings: Settings,
-    send_expand: Callable[[str], None],
-    send_finalize: Callable[[str], None],
-) -> None:
-    """Send again what a lost message or a missed trigger left undone (module docstring).
-    Each send is claimed by one conditional row update, so concurrent readers send once."""
-    now = utcnow()
-    c = campaign
-    try:
-        if c.state == CampaignState.PENDING:
-            cut = now - timedelta(seconds=settings.reaper_orphan_grace_s)
-            if updated_rows(session, update(Campaign).where(
-                    Campaign.id == c.id, Campaign.state == CampaignState.PENDING,
-                    Campaign.updated_at < cut).values(updated_at=now)):  # fmt: skip
-                session.commit()
-                send_expand(c.id)
-        elif c.state == CampaignState.EXPANDING:
-            # the expansion beats its heart (stage, updated_at) as it prepares; silent for
-            # longer than any task may run, its worker died with the message unacknowledged
-            stale = settings.reaper_stale_after_s or (
-                settings.task_time_limit_s + settings.visibility_margin_s
-            )
-            cut = now - timedelta(seconds=stale)
-            if updated_rows(session, update(Campaign).where(
-                    Campaign.id == c.id, Campaign.state == CampaignState.EXPANDING,
-                    Campaign.updated_at < cut).values(updated_at=now)):  # fmt: skip
-                session.commit()
-                send_expand(c.id)
-        elif c.state == CampaignState.RUNNING:
-            unfinished = session.scalar(
-                select(func.count()).select_from(Job).where(
-                    Job.campaign_id == c.id, Job.state.not_in(list(TERMINAL_STATES)))
-            )  # fmt: skip
-            if unfinished:
-                return
-            cut = now - timedelta(seconds=FINALIZE_RETRY_S)
-            claim = update(Campaign).where(
-                Campaign.id == c.id, Campaign.state == CampaignState.RUNNING,
-                or_(Campaign.stage.is_(None), Campaign.stage != "finalize",
-                    Campaign.updated_at < cut),
-            ).values(stage="finalize", updated_at=now)  # fmt: skip
-            if updated_rows(session, claim):
-                session.commit()
-                send_finalize(c.id)
-    except Exception as exc:  # the next read tries again
-        session.rollback()
-        log.warning("campaign %s: nudge failed: %s", c.id, exc)
-    session.refresh(c)
-
-
 def cancel_campaign(
     *,
     session: Session,

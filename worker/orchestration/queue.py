@@ -11,13 +11,22 @@ PENDING with an event saying why; :func:`requeue_pending` sends those again.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from datetime import timedelta
 from typing import TYPE_CHECKING, Any
 
-from sqlalchemy import select, update
+from sqlalchemy import func, or_, select, update
 
 from osdar_platform.db import get_sessionmaker, updated_rows
-from osdar_platform.models import Job, JobEvent, JobState, utcnow
+from osdar_platform.models import (
+    TERMINAL_STATES,
+    Campaign,
+    CampaignState,
+    Job,
+    JobEvent,
+    JobState,
+    utcnow,
+)
 from worker.orchestration.broker_sentinel import sentinel_epoch
 
 if TYPE_CHECKING:
@@ -33,6 +42,8 @@ TASK_RUN_JOB = "osdar_ar.run_job"
 #: service_finalize.py): the expansion into variant jobs, and the manifest at the end.
 TASK_EXPAND_CAMPAIGN = "osdar_ar.campaign_expand"
 TASK_FINALIZE_CAMPAIGN = "osdar_ar.campaign_finalize"
+#: A campaign finalize asked for and not done within this long is asked for again.
+FINALIZE_RETRY_S = 30.0
 
 
 def _celery_app(app: Any) -> Any:
@@ -202,12 +213,77 @@ def requeue_pending(
     return sent
 
 
+def nudge_campaign(
+    *,
+    session: Session,
+    campaign: Campaign,
+    settings: Settings,
+    send_expand: Callable[[str], None],
+    send_finalize: Callable[[str], None],
+) -> None:
+    """Send again what a lost message or a missed trigger left undone for one campaign:
+    its expansion when it was left PENDING past ``reaper_orphan_grace_s`` or EXPANDING
+    without a heartbeat for longer than a task may run (its worker died with the message
+    unacknowledged), its finalize when every variant job has finished but the campaign is
+    still RUNNING (the variant's own trigger lost: its worker killed after the publish, a
+    variant FAILED by the reaper, a finalize that raised), again after
+    :data:`FINALIZE_RETRY_S` if that one is lost too. Each send is claimed by one
+    conditional row update, so concurrent callers (API reads, reapers) send once.
+
+    Called on every API read of the campaign (service/services/campaigns.py) and by every
+    reaper sweep (reaper.py) for every campaign not ended."""
+    now = utcnow()
+    c = campaign
+    try:
+        if c.state == CampaignState.PENDING:
+            cut = now - timedelta(seconds=settings.reaper_orphan_grace_s)
+            if updated_rows(session, update(Campaign).where(
+                    Campaign.id == c.id, Campaign.state == CampaignState.PENDING,
+                    Campaign.updated_at < cut).values(updated_at=now)):  # fmt: skip
+                session.commit()
+                send_expand(c.id)
+        elif c.state == CampaignState.EXPANDING:
+            # the expansion beats its heart (stage, updated_at) as it prepares; silent for
+            # longer than any task may run, its worker died with the message unacknowledged
+            stale = settings.reaper_stale_after_s or (
+                settings.task_time_limit_s + settings.visibility_margin_s
+            )
+            cut = now - timedelta(seconds=stale)
+            if updated_rows(session, update(Campaign).where(
+                    Campaign.id == c.id, Campaign.state == CampaignState.EXPANDING,
+                    Campaign.updated_at < cut).values(updated_at=now)):  # fmt: skip
+                session.commit()
+                send_expand(c.id)
+        elif c.state == CampaignState.RUNNING:
+            unfinished = session.scalar(
+                select(func.count()).select_from(Job).where(
+                    Job.campaign_id == c.id, Job.state.not_in(list(TERMINAL_STATES)))
+            )  # fmt: skip
+            if unfinished:
+                return
+            cut = now - timedelta(seconds=FINALIZE_RETRY_S)
+            claim = update(Campaign).where(
+                Campaign.id == c.id, Campaign.state == CampaignState.RUNNING,
+                or_(Campaign.stage.is_(None), Campaign.stage != "finalize",
+                    Campaign.updated_at < cut),
+            ).values(stage="finalize", updated_at=now)  # fmt: skip
+            if updated_rows(session, claim):
+                session.commit()
+                send_finalize(c.id)
+    except Exception as exc:  # the next read tries again
+        session.rollback()
+        log.warning("campaign %s: nudge failed: %s", c.id, exc)
+    session.refresh(c)
+
+
 __all__ = [
+    "FINALIZE_RETRY_S",
     "TASK_EXPAND_CAMPAIGN",
     "TASK_FINALIZE_CAMPAIGN",
     "TASK_RUN_JOB",
     "broker_overview",
     "enqueue_job",
+    "nudge_campaign",
     "request_cancel",
     "requeue_pending",
     "send_task",

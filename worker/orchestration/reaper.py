@@ -45,6 +45,15 @@ handed to the broker is ``jobs.broker_seen_at``).
 - **PENDING**: the API committed the row but could not send the message
   (``worker.orchestration.queue.requeue_pending``).
 
+Campaigns: a campaign's variants are jobs like any other, re-queued by the rules above;
+a re-queued variant's new attempt ends in its publish (or failure), which finalizes the
+campaign once every variant has finished. What no job rule covers is a lost campaign
+message or trigger: an expansion whose worker died, a finalize never sent (the variant's
+worker killed between its publish and the finalize, a variant FAILED here as poison, a
+finalize that raised). Every sweep gives each campaign not ended
+:func:`~worker.orchestration.queue.nudge_campaign` (what an API read of the campaign
+does), so a campaign nobody reads still ends.
+
 A stage that cannot reach the database does not fail the job: its message goes back to
 the broker (``tasks.py``), and its lease, if it had one, expires or is taken over by the
 stage's next delivery. A reaper whose own sweep failed (the database away) does not
@@ -82,7 +91,16 @@ from typing import Any
 from sqlalchemy import and_, delete, or_, select, update
 
 from osdar_platform.db import make_engine, make_sessionmaker, updated_rows
-from osdar_platform.models import TERMINAL_STATES, Job, JobEvent, JobLease, JobState, utcnow
+from osdar_platform.models import (
+    TERMINAL_STATES,
+    Campaign,
+    CampaignState,
+    Job,
+    JobEvent,
+    JobLease,
+    JobState,
+    utcnow,
+)
 from osdar_platform.settings import Settings
 from worker.orchestration.broker_sentinel import (
     SENTINEL_KEY,
@@ -91,10 +109,19 @@ from worker.orchestration.broker_sentinel import (
     sentinel_epoch,
 )
 from worker.orchestration.celery_app import make_celery
-from worker.orchestration.queue import TASK_RUN_JOB, requeue_pending
+from worker.orchestration.queue import (
+    TASK_EXPAND_CAMPAIGN,
+    TASK_FINALIZE_CAMPAIGN,
+    TASK_RUN_JOB,
+    nudge_campaign,
+    requeue_pending,
+)
 from worker.orchestration.state import POISON_REASON
 
 log = logging.getLogger(__name__)
+
+#: The campaigns a sweep looks at: those a lost message or trigger can leave stuck.
+ACTIVE_CAMPAIGN_STATES = [CampaignState.PENDING, CampaignState.EXPANDING, CampaignState.RUNNING]
 
 STALE_REASON = "worker lost: no progress for {s:.0f}s (time limit or killed worker)"
 LEASE_REASON = "lease expired: {stage} held by {holder}, {ago:.0f}s ago (worker lost)"
@@ -110,6 +137,8 @@ class ReapReport:
     requeued: list[str] = field(default_factory=list)
     failed: list[str] = field(default_factory=list)
     pending_sent: list[str] = field(default_factory=list)
+    #: campaigns whose expansion or finalize was sent again (nudge_campaign)
+    campaigns_nudged: list[str] = field(default_factory=list)
     reasons: dict[str, str] = field(default_factory=dict)
     broker: BrokerEpoch | None = None
 
@@ -367,12 +396,36 @@ def reap(
         )
         if report.pending_sent and report.broker is not None:
             _stamp(sessions, report.pending_sent, report.broker)
+        report.campaigns_nudged = _nudge_campaigns(sessions, app, settings)
     finally:
         if engine is not None:
             engine.dispose()
-    if report.requeued or report.failed or report.pending_sent:
+    if report.requeued or report.failed or report.pending_sent or report.campaigns_nudged:
         log.warning("reaper: %s", report)
     return report
+
+
+def _nudge_campaigns(sessions: Any, app: Any, settings: Settings) -> list[str]:
+    """Every campaign not ended gets :func:`nudge_campaign`: a RUNNING one whose variant
+    jobs have all finished is finalized even when no variant's own trigger did it (a
+    variant FAILED by this sweep, a worker killed between a publish and its finalize) and
+    nobody reads the campaign. Returns the campaigns a task was sent for."""
+    sent: list[str] = []
+
+    def sender(task: str) -> Any:
+        def send(campaign_id: str) -> None:
+            app.send_task(task, args=[campaign_id])
+            sent.append(campaign_id)
+
+        return send
+
+    with sessions() as s:
+        active = s.scalars(select(Campaign).where(Campaign.state.in_(ACTIVE_CAMPAIGN_STATES)))
+        for c in list(active):
+            nudge_campaign(session=s, campaign=c, settings=settings,
+                           send_expand=sender(TASK_EXPAND_CAMPAIGN),
+                           send_finalize=sender(TASK_FINALIZE_CAMPAIGN))  # fmt: skip
+    return sent
 
 
 # ---------------------------------------------------------------------------- thread

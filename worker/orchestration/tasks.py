@@ -138,6 +138,7 @@ def run_job(self: Task[Any, Any], job_id: str) -> None:
             job_id, f"start: could not schedule the stages ({exc})", attempt=attempt,
             settings=get_settings(),
         )  # fmt: skip
+        _after_job(job_id)
         raise Ignore() from exc
 
 
