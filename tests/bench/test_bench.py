@@ -90,13 +90,16 @@ def test_bench_hard_json(tmp_path: Path) -> None:
         assert {"title", "degrades", "warning", "error", "bound", "unit", "ok"} <= set(c)
 
 
-def test_floor_with_a_process_pool(tmp_path: Path) -> None:
+def test_floor_with_a_process_pool(
+    tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
+) -> None:
     """The full bench's floor runs in a pool of 2: its functions must unpickle there."""
     from tests.synth_fixtures import synth_sequence
     from worker.bench.floor import measure_floor
     from worker.osdar.sequence import Sequence
 
-    seq = Sequence.open(synth_sequence(tmp_path))
+    # the station sequence the preparation tests share (generated once per session)
+    seq = Sequence.open(synth_sequence(tmp_path_factory.getbasetemp()))
     frames = seq.frame_indices[:4]
     streams = [seq.cameras[0]] + ([seq.lidar_stream] if seq.lidar_stream else [])
     seconds = measure_floor(seq, frames, streams, 2, 1, tmp_path / "floor")

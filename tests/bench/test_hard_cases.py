@@ -4,7 +4,8 @@ Each case finishes with finite numbers, gives its warning where the method degra
 stays within its stated bound (the bound is in the case's row: ``osdar-ar bench --hard``).
 Many cases already have detailed tests elsewhere; ``EXISTING_TESTS`` lists them by case and
 ``test_existing_tests_exist`` keeps that list honest. The rows here run the reduced form
-(20-frame sequences); ``OSDAR_FULL=1`` adds the full form (60 frames, marked slow).
+(20-frame sequences; the sequence cases' rows are marked slow, their own tests stay in the
+quick set); ``OSDAR_FULL=1`` adds the full form (60 frames, marked slow).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ def ctx(tmp_path_factory: pytest.TempPathFactory) -> HardContext:
 def test_every_case_is_collected() -> None:
     assert sorted(CASES) == list(range(1, 13))
     assert set(EXISTING_TESTS) <= set(CASES)
+    assert SEQUENCE_CASES <= set(EXISTING_TESTS)  # what the quick set keeps of them
 
 
 def test_existing_tests_exist() -> None:
@@ -39,9 +41,21 @@ def test_existing_tests_exist() -> None:
                 assert re.search(rf"^def {re.escape(name)}\(", text, re.M), (case, node)
 
 
+#: The sequence cases (a 20-frame synthetic sequence and every localization strategy on it,
+#: 2-5 s each): their rows run in ``make test``; the quick set keeps the cases' own tests
+#: (EXISTING_TESTS: the same detections and bounds on the localization and rails tests'
+#: sequences) and the rows of the geometry and rendering cases.
+SEQUENCE_CASES = {2, 3, 4, 5, 6, 10}
+
+
 def _params() -> list:
     return [
-        pytest.param(n, marks=[pytest.mark.gl] if n in GL_CASES else [], id=f"case{n:02d}")
+        pytest.param(
+            n,
+            marks=([pytest.mark.gl] if n in GL_CASES else [])
+            + ([pytest.mark.slow] if n in SEQUENCE_CASES else []),
+            id=f"case{n:02d}",
+        )
         for n in sorted(CASES)
     ]
 

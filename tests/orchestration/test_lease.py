@@ -91,6 +91,9 @@ def test_take_renew_release(settings: Settings) -> None:
     assert not lease.renew(c, settings=settings)  # gone: nothing to renew
 
 
+@pytest.mark.parametrize(  # 3.6 s of sleep each: PostgreSQL's run only in make test
+    "settings", ["sqlite", pytest.param("postgresql", marks=pytest.mark.slow)], indirect=True
+)
 def test_the_heartbeat_keeps_a_lease_alive_and_the_end_releases_it(settings: Settings) -> None:
     job_id = running_job(settings)
     with lease.held(job_id, 1, "prepare", settings=settings):
