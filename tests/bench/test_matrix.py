@@ -41,12 +41,18 @@ def test_design_has_every_level_of_every_factor(quick: bool) -> None:
         assert any(c.merge_error is False for c in cells)
 
 
-@pytest.fixture(scope="module")
-def small_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    cells = [
-        Cell("stationary", 10, 0.3, "osdar23", 0, "stationary"),
-        Cell("fire_site", 12, 0.3, "good", 1),
-    ]
+STILL = Cell("stationary", 10, 0.3, "osdar23", 0, "stationary")
+MOVING = Cell("fire_site", 12, 0.3, "good", 1)
+
+
+@pytest.fixture(
+    scope="module",
+    params=["still", pytest.param("still_and_moving", marks=pytest.mark.slow)],
+)
+def small_run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The matrix on a standing train's cell (5 s), and in make test also with a moving
+    train's (10 s more): every test below runs on both runs there."""
+    cells = [STILL] if request.param == "still" else [STILL, MOVING]
     return run_matrix(tmp_path_factory.mktemp("matrix"), cells=cells)
 
 

@@ -39,6 +39,13 @@ def seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
+def prep_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One preparation cache for the module: the CLI run prepares the sequence with the
+    ins and fused strategies, the tests after it read those preparations back."""
+    return tmp_path_factory.mktemp("ev_cache")
+
+
+@pytest.fixture(scope="module")
 def truth_tracks(seq: Path) -> dict:
     """{"truth": (true poses, cloud registered with them), "jumpy": (poses with a 2 m
     sideways jump from frame 10 on, the same cloud re-registered with them)}."""
@@ -154,7 +161,9 @@ def test_cloud_for_track_is_the_registration_with_that_track(seq: Path, truth_tr
     assert np.percentile(dist, 95) < 0.06
 
 
-def test_clicks_file_cli_writes_everything(seq: Path, tmp_path: Path, capsys) -> None:
+def test_clicks_file_cli_writes_everything(
+    seq: Path, tmp_path: Path, prep_cache: Path, capsys
+) -> None:
     """A clicks CSV of one landmark (the README's format) through ``osdar-ar evaluate``."""
     from worker.cli import main
 
@@ -171,7 +180,7 @@ def test_clicks_file_cli_writes_everything(seq: Path, tmp_path: Path, capsys) ->
     rc = main(
         [
             "evaluate", str(seq), "--out", str(out), "--strategies", "ins,fused",
-            "--clicks", str(clicks_csv), "--cache-dir", str(tmp_path / "cache"),
+            "--clicks", str(clicks_csv), "--cache-dir", str(prep_cache),
         ]
     )  # fmt: skip
     assert rc == 0
@@ -197,21 +206,23 @@ def test_clicks_file_cli_writes_everything(seq: Path, tmp_path: Path, capsys) ->
     assert "RPE mean" in capsys.readouterr().out
 
 
-def test_cli_errors_exit_2(seq: Path, tmp_path: Path) -> None:
+def test_cli_errors_exit_2(seq: Path, tmp_path: Path, prep_cache: Path) -> None:
     from worker.cli import main
 
     bad = tmp_path / "bad.csv"
     bad.write_text("camera,frame_idx,u,v\nrgb_nope,0,1,2\n")
     args = ["evaluate", str(seq), "--out", str(tmp_path / "o"), "--strategies", "ins"]
-    assert main([*args, "--clicks", str(bad), "--cache-dir", str(tmp_path / "c")]) == 2
+    assert main([*args, "--clicks", str(bad), "--cache-dir", str(prep_cache)]) == 2
 
 
-def test_evaluate_sequence_keeps_the_job_keys_and_adds_the_paper_rpe(seq: Path, tmp_path) -> None:
+def test_evaluate_sequence_keeps_the_job_keys_and_adds_the_paper_rpe(
+    seq: Path, prep_cache: Path
+) -> None:
     from worker.evaluation.evaluate import evaluate_sequence
     from worker.preparation.config import PrepareConfig
     from worker.preparation.prepare import prepare
 
-    prepared = prepare(seq, PrepareConfig(strategy="fused"), cache_dir=tmp_path / "cache")
+    prepared = prepare(seq, PrepareConfig(strategy="fused"), cache_dir=prep_cache)
     m, series = evaluate_sequence(seq, prepared, CAMS)
     assert m["strategy"] == "fused"
     assert m["ground_truth"]["pose_error"]["ins"]["translation_m_mean"] >= 0
