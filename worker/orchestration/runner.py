@@ -64,9 +64,9 @@ from worker.augmentation.records import (
     read_plan,
 )
 from worker.augmentation.spec import AugmentSpec, MeshFile
-from worker.evaluation.evaluate import evaluate_sequence, plot_rpe_jitter
 from worker.orchestration import lease, state
 from worker.orchestration.lease import database_unreachable
+from worker.orchestration.shared_results import rpe_plot, sequence_evaluation
 from worker.orchestration.state import (
     POISON_REASON,
     JobCancelled,
@@ -616,7 +616,8 @@ def evaluate_job(
         seq_folder = _local_sequence(run)
         prepared = _prepare(run)
         cameras = list(run.spec.get("cameras") or [])
-        metrics, series = evaluate_sequence(seq_folder, prepared, cameras)
+        metrics, series = sequence_evaluation(seq_folder, prepared, cameras,
+                                              cache_dir=run.settings.cache_dir)  # fmt: skip
         seq = run.info["sequence"] or {}
         update = {
             "sequence": {
@@ -646,7 +647,8 @@ def _report(run: JobRun, metrics: dict[str, Any]) -> dict[str, Path]:
     files["metrics.json"] = report / "metrics.json"
     series = (metrics.get("evaluation") or {}).get("per_frame") or {}
     title = f"RPE and jitter, strategy {(metrics.get('evaluation') or {}).get('strategy')}"
-    plot = plot_rpe_jitter(series, report / "previews" / "rpe_jitter.png", title)
+    plot = rpe_plot(series, report / "previews" / "rpe_jitter.png", title,
+                    cache_dir=run.settings.cache_dir)  # fmt: skip
     if plot is not None:
         files["report/rpe_jitter.png"] = plot
     out = output_sequence(run)
