@@ -39,17 +39,25 @@ class Scene:
         return self._result
 
 
-def _make(tmp_path_factory: pytest.TempPathFactory, scene: str, frames: int) -> Scene:
+def _make(
+    tmp_path_factory: pytest.TempPathFactory, scene: str, frames: int, cameras: bool = False
+) -> Scene:
+    """The scene's sequence; without camera images unless the image backend reads them
+    (the other files are the same to the byte: tests/synth/test_synth_generator.py)."""
     from worker.synth.generator import SynthConfig, generate
 
     out = tmp_path_factory.mktemp("rails") / scene
-    generate(out, SynthConfig(scene=scene, frames=frames, scale=0.1, lidar_density=0.3, seed=3))
+    extra = {} if cameras else {"cameras": ()}
+    generate(
+        out,
+        SynthConfig(scene=scene, frames=frames, scale=0.1, lidar_density=0.3, seed=3, **extra),
+    )
     return Scene(out)
 
 
 @pytest.fixture(scope="module")
 def switch(tmp_path_factory: pytest.TempPathFactory) -> Scene:
-    return _make(tmp_path_factory, "switch", 20)
+    return _make(tmp_path_factory, "switch", 20, cameras=True)  # the image backend's too
 
 
 @pytest.fixture(scope="module")

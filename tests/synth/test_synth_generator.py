@@ -148,6 +148,25 @@ def test_same_seed_same_files(tmp_path):
             assert (a / rel).read_bytes() == (b / rel).read_bytes(), rel
 
 
+def test_without_cameras_the_lidar_ins_and_ground_truth_files_are_the_same(small_seq, tmp_path):
+    """Tests of the lidar and INS alone (localization, rails) generate their sequences
+    without camera images (half the time): every other file is the same to the byte."""
+    bare = generate(tmp_path / "bare", SynthConfig(scene="fire_site", cameras=(), **SMALL)).folder
+    cams = {p.name for p in small_seq.iterdir() if p.is_dir() and p.name.startswith("rgb_")}
+    assert cams and not any((bare / c).exists() for c in cams)
+    per_camera = {"ground_truth/landmarks.json", "ground_truth/meta.json"}  # pixels, config
+
+    def files(root: Path) -> set[str]:
+        return {str(p.relative_to(root)) for p in root.rglob("*") if p.is_file()}
+
+    kept = {f for f in files(small_seq) if f.split("/")[0] not in cams}
+    kept -= {f"{small_seq.name}_labels.json"}
+    assert files(bare) - {"bare_labels.json"} == kept
+    assert len(kept - per_camera) > 10
+    for rel in sorted(kept - per_camera):
+        assert (bare / rel).read_bytes() == (small_seq / rel).read_bytes(), rel
+
+
 def test_default_ins_profile_gives_paper_like_raw_ins_errors(small_seq):
     """Raw INS on rgb_center: tens of pixels, as in the paper's table (49-81 px)."""
     from worker.demo import evaluate_raw_ins
