@@ -226,6 +226,25 @@ def test_reaper_requeues_a_stale_running_job_and_fails_it_at_the_delivery_bound(
 
 
 # ---------------------------------------------------------------------------- alembic
+def test_alembic_writes_to_the_stdout_of_the_moment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Alembic's Config bound sys.stdout at import: a closed pytest capture afterwards.
+    The fix writes to whatever sys.stdout is when it writes (the whole-session form: the
+    subprocess test below)."""
+    import io
+
+    from osdar_platform.migrate import alembic_config
+
+    first = io.StringIO()
+    monkeypatch.setattr(sys, "stdout", first)
+    cfg = alembic_config(database_url="sqlite://")
+    first.close()  # the capture of a test that has ended
+    later = io.StringIO()
+    monkeypatch.setattr(sys, "stdout", later)
+    cfg.print_stdout("no new upgrade operations detected")
+    assert later.getvalue() == "no new upgrade operations detected\n"
+
+
+@pytest.mark.slow  # 3.5 s: a pytest session in a subprocess
 def test_db_tests_pass_after_the_cli_tests_in_one_session() -> None:
     """Alembic's Config bound sys.stdout at import: a closed pytest capture afterwards."""
     r = subprocess.run(
