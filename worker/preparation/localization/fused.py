@@ -70,6 +70,7 @@ from worker.preparation.localization.common import (
 from worker.preparation.localization.ground_pairs import LAGS as GROUND_LAGS
 from worker.preparation.localization.ground_pairs import ground_pairs
 from worker.preparation.localization.hat import hat_variances, relative_difference
+from worker.preparation.localization.heading_hat import HeadingErrors, heading_errors
 from worker.preparation.localization.ins_wander import ins_wander, robust_rms
 from worker.preparation.localization.odometry import (
     degenerate_frames,
@@ -79,6 +80,7 @@ from worker.preparation.localization.odometry import (
     odometry_track,
 )
 from worker.preparation.localization.rails import RailsStrategy, orientation_noise, rail_frames
+from worker.preparation.localization.step_noise import step_noise, white_noise
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -213,7 +215,7 @@ class Problem:
     d_t: F64  # (n-1, 3) odometry translations in the earlier frame
     d_R: F64  # (n-1, 3, 3) odometry rotations
     w_odo_t: F64  # (n-1, 3) 1/sigma per component
-    w_odo_r: F64  # (n-1,) 1/sigma
+    w_odo_r: F64  # (n-1, 3) 1/sigma about roll, pitch, heading
     ins_k: NDArray[np.int64]  # frames with an INS record
     p_ins: F64  # (m, 3) nominal INS positions (jumps removed)
     R_ins: F64  # (m, 3, 3) nominal INS rotations
@@ -429,7 +431,7 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
     dp = np.einsum("nij,nj->ni", Rt, p[1:] - p[:-1]) - pb.d_t
     out.append((dp * pb.w_odo_t / pb.s_odo("odo_t")).ravel())
     E = np.swapaxes(pb.d_R, 1, 2) @ Rt @ R[1:]
-    out.append((_log_rotation(E) * pb.w_odo_r[:, None] / pb.s_odo("odo_r")).ravel())
+    out.append((_log_rotation(E) * pb.w_odo_r / pb.s_odo("odo_r")).ravel())
     out.append(_ins_blocks(x, pb, R, p))
     # rails
     if pb.rail is not None:
@@ -613,18 +615,25 @@ def sparsity(pb: Problem) -> csc_matrix:
 
 
 def _odometry_weights(
-    inp: LocalizationInput, ins: InsFrames, d_t: F64, health: Health, sig: Sigmas
+    inp: LocalizationInput,
+    ins: InsFrames,
+    d_t: F64,
+    d_R: F64,
+    health: Health,
+    sig: Sigmas,
+    heading: HeadingErrors | None = None,
 ) -> tuple[F64, F64, bool]:
-    """1/sigma of the odometry residuals, down-weighted where ICP is unreliable."""
+    """1/sigma of the odometry residuals ((n-1, 3) translation and rotation), down-weighted
+    where ICP is unreliable; the heading's at most what its measured error over a lag
+    (:mod:`.heading_hat`) allows, as a random walk."""
     n1 = len(d_t)
     w_t = np.full((n1, 3), 1.0 / sig.odo_t)
-    w_r = np.full(n1, 1.0 / sig.odo_r)
     try:
         run = odometry_run(inp)
         _, odo_health = odometry_track(inp)
     except Exception as exc:
         health.warn(f"fused: odometry unavailable ({exc}); INS and rails only")
-        return np.zeros((n1, 3)), np.zeros(n1), False
+        return np.zeros((n1, 3)), np.zeros((n1, 3)), False
     degenerate_run = is_degenerate(odo_health)
     deg = degenerate_frames(run)
     along_bad = deg[1:] | deg[:-1]
@@ -637,6 +646,11 @@ def _odometry_weights(
     skipped = np.zeros(n1 + 1, dtype=bool)
     skipped[run.skipped] = True
     bad = skipped[1:] | skipped[:-1]
+    sigma_r = _odometry_rotation_sigma(inp, d_R, ~bad, health, sig)
+    if heading is not None:
+        sigma_r[2] = min(max(sigma_r[2], math.sqrt(heading.odometry / heading.lag)), ODO_R_CAP)
+        health.metrics["fused_odometry_step_heading_deg"] = math.degrees(sigma_r[2])
+    w_r = np.tile(1.0 / sigma_r, (n1, 1))
     if degenerate_run:
         w_t[:, 0] = 1.0 / sig.odo_t_degenerate
         w_t[:, 1:] /= 3.0
@@ -649,6 +663,56 @@ def _odometry_weights(
     w_r[bad] /= 100.0
     health.metrics["fused_odometry_downweighted_steps"] = float(np.sum(along_bad | bad))
     return w_t, w_r, degenerate_run
+
+
+def _heading_errors(
+    inp: LocalizationInput, ins: InsFrames, health: Health, sig: Sigmas
+) -> HeadingErrors | None:
+    """The INS's, the odometry's and the course's heading errors over one bias knot
+    spacing (:mod:`.heading_hat`), None where they cannot be measured."""
+    times = np.asarray(inp.times, dtype=np.float64)
+    if len(times) < 2:
+        return None
+    try:
+        T_odo = odometry_track(inp)[0].T
+    except Exception:  # the odometry's absence is warned about where it is used
+        return None
+    dt = float(np.median(np.diff(times)))
+    lag = max(1, round(sig.bias_knot_s / dt)) if dt > 0 else 1
+    h = heading_errors(
+        ins.T_world_base[:, :3, :3], T_odo[:, :3, :3], ins.v_world, times,
+        np.asarray(ins.covered, dtype=bool), lag,
+    )  # fmt: skip
+    if h is not None:
+        for name in ("ins", "odometry", "course"):
+            v = math.degrees(math.sqrt(getattr(h, name)))
+            health.metrics[f"fused_heading_error_{name}_deg"] = v
+    return h
+
+
+#: Ceiling of the odometry's measured rotation step noise (rad).
+ODO_R_CAP = 1.0 * DEG
+
+
+def _odometry_rotation_sigma(
+    inp: LocalizationInput, d_R: F64, valid: NDArray[np.bool_], health: Health, sig: Sigmas
+) -> F64:
+    """(3,) sigma (rad) of an odometry step's rotation about roll, pitch and heading: its
+    own step noise (:func:`~.step_noise.step_noise`) within [``sig.odo_r``,
+    :data:`ODO_R_CAP`]; ``sig.odo_r`` where it cannot be measured.
+
+    Scan-to-map odometry's steps are the differences of per-scan registration errors: on
+    the synthetic scenes 0.010-0.015 deg a step about each axis (0.1 deg about the roll
+    axis on a straight track with few structures), where a fixed 0.01 deg made its heading
+    outweigh a good INS's (fused heading over 30 frames 0.016 deg against the INS's 0.008).
+    """
+    q = step_noise(d_R, np.asarray(inp.times, dtype=np.float64), valid)
+    if q is None:
+        return np.full(3, sig.odo_r)
+    q = np.clip(q, sig.odo_r, ODO_R_CAP)
+    for name, v in zip(("roll", "pitch", "heading"), q, strict=True):
+        health.metrics[f"fused_odometry_step_{name}_deg"] = float(np.degrees(v))
+    return q
 
 
 #: INS speed (m/s) below which a step between two frames is a standstill (the INS velocity
@@ -724,14 +788,11 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     else:
         D = np.zeros((0, 4, 4))
     d_t, d_R = D[:, :3, 3].copy(), D[:, :3, :3].copy()
+    heading_err = _heading_errors(inp, ins, health, sig)
     w_t, w_r, degenerate = (
-        _odometry_weights(inp, ins, d_t, health, sig)
+        _odometry_weights(inp, ins, d_t, d_R, health, sig, heading_err)
         if n >= 2
-        else (
-            np.zeros((0, 3)),
-            np.zeros(0),
-            False,
-        )
+        else (np.zeros((0, 3)), np.zeros((0, 3)), False)
     )
     zupt = np.zeros(max(n - 1, 0), dtype=bool)
     if n >= 2:
@@ -758,7 +819,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     )
     bias_sigma = np.array([sig.att_bias] * 3 + [sig.pos_bias] * 3)
     ground = _ground_constraints(inp, health, sig) if n >= 2 else None
-    bias_step = _bias_step_sigmas(inp, ins, p_ins_all, degenerate, health, sig, ground)
+    bias_step = _bias_step_sigmas(inp, ins, p_ins_all, degenerate, health, sig, ground, heading_err)
     white = _ins_attitude_white(inp, ins, ground, health, sig)
     if rail is None:
         # Nothing else fixes the absolute attitude: the INS's is taken as is.
@@ -841,8 +902,9 @@ def _ins_attitude_white(
     Over one frame the INS's wander is negligible, so its relative rotation's error is
     its white noise twice. Roll and pitch come from the three-cornered hat of the INS, the
     odometry and the lag-1 ground pairs (each source's own error); the heading, with no
-    third source, from the INS against the odometry, which counts the odometry's own step
-    error as the INS's (an upper bound: conservative). A fixed 0.03 deg made a good INS
+    third source, from the INS against the odometry (which counts the odometry's own step
+    error as the INS's: an upper bound) or from the INS's own third differences
+    (:func:`~.step_noise.white_noise`), whichever is smaller. A fixed 0.03 deg made a good INS
     (0.003 deg noise) count for a hundredth of its worth, and the fused rotation over 30
     frames followed the odometry's drift (0.034 deg against the INS's own 0.007).
     """
@@ -870,6 +932,9 @@ def _ins_attitude_white(
         )
         if v is not None:
             var[:2] = v["ins"]
+    own = white_noise(R_ins, np.asarray(inp.times, dtype=np.float64), covered[:-1] & covered[1:])
+    if own is not None:  # the heading against the odometry counts the odometry's step error
+        var[2] = min(var[2], 2.0 * own[2] ** 2)
     white = np.clip(np.sqrt(var / 2.0), INS_WHITE_FLOOR, sig.ins_r)
     for name, w in zip(("roll", "pitch", "heading"), white, strict=True):
         health.metrics[f"fused_ins_white_{name}_deg"] = float(np.degrees(w))
@@ -944,7 +1009,9 @@ def _odometry_pairs(
     except Exception as exc:
         health.warn(f"fused: no odometry pairs ({exc})")
         return None
-    full = (w_t[:, 1] >= 0.99 / sig.odo_t) & (w_r >= 0.99 / sig.odo_r) & ~zupt
+    # a step at full weight: its rotation weight is the largest of the moving steps'
+    w_r_full = np.max(w_r[~zupt], axis=0) if np.any(~zupt) else np.zeros(3)
+    full = (w_t[:, 1] >= 0.99 / sig.odo_t) & np.all(w_r >= 0.99 * w_r_full, axis=1) & ~zupt
     if not degenerate:
         full &= w_t[:, 0] >= 0.99 / sig.odo_t
     bad = np.concatenate([[0], np.cumsum(~full)])  # bad steps before frame i
@@ -1015,6 +1082,7 @@ def _bias_step_sigmas(
     health: Health,
     sig: Sigmas,
     ground: dict | None = None,
+    heading: HeadingErrors | None = None,
 ) -> F64:
     """(6,) sigmas of the INS bias' change between knots: attitude about the track's axes
        (roll, pitch, heading: :func:`_track_axes`, rad), position along world x, y, z (m),
@@ -1050,6 +1118,13 @@ def _bias_step_sigmas(
         # odometry's, 0.017 deg against its own 0.002).
         floor[:2] = INS_WHITE_FLOOR
         health.metrics["fused_ins_wander_source_level"] = 1.0
+    if heading is not None:  # the course over ground is the heading's third source
+        own = white_noise(ins.T_world_base[:, :3, :3], times, ins.covered[:-1] & ins.covered[1:])
+        white_var = 2.0 * float(own[2]) ** 2 if own is not None else 0.0
+        span = heading.lag * float(np.median(np.diff(times)))
+        rot[2] = math.sqrt(max(heading.ins - white_var, 0.0) * sig.bias_knot_s / span)
+        floor[2] = INS_WHITE_FLOOR
+        health.metrics["fused_ins_wander_source_heading"] = 1.0
     out[:3] = np.clip(rot, floor, a_cap)  # about the track's axes (Problem.R_bias)
     out[3:] = np.clip(w.position_m, p_floor, p_cap)
     if degenerate:
