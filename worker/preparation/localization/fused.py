@@ -70,6 +70,7 @@ from worker.preparation.localization.common import (
 from worker.preparation.localization.ground_pairs import LAGS as GROUND_LAGS
 from worker.preparation.localization.ground_pairs import ground_pairs
 from worker.preparation.localization.hat import hat_variances, relative_difference
+from worker.preparation.localization.heading_hat import MIN_PAIRS as HEADING_MIN_PAIRS
 from worker.preparation.localization.heading_hat import HeadingErrors, heading_errors
 from worker.preparation.localization.ins_wander import ins_wander, robust_rms
 from worker.preparation.localization.odometry import (
@@ -665,6 +666,13 @@ def _odometry_weights(
     return w_t, w_r, degenerate_run
 
 
+#: Longest lag (in bias knot spacings) of the heading hat. At one knot the course's noise
+#: (0.07 deg over 10 frames on fire_site) swamped a good INS's and the odometry's heading
+#: errors (0.008, 0.024) and the hat put them the wrong way round (fused heading over 30
+#: frames 0.015 deg against the INS's 0.008); at three, 0.010.
+HEADING_HAT_MAX_KNOTS = 3
+
+
 def _heading_errors(
     inp: LocalizationInput, ins: InsFrames, health: Health, sig: Sigmas
 ) -> HeadingErrors | None:
@@ -678,7 +686,10 @@ def _heading_errors(
     except Exception:  # the odometry's absence is warned about where it is used
         return None
     dt = float(np.median(np.diff(times)))
-    lag = max(1, round(sig.bias_knot_s / dt)) if dt > 0 else 1
+    knot = max(1, round(sig.bias_knot_s / dt)) if dt > 0 else 1
+    # the longest lag up to HEADING_HAT_MAX_KNOTS knots that leaves enough pairs: the
+    # course's noise is the same at every lag, the wander and drift grow with it
+    lag = max(knot, min(HEADING_HAT_MAX_KNOTS * knot, len(times) - HEADING_MIN_PAIRS))
     h = heading_errors(
         ins.T_world_base[:, :3, :3], T_odo[:, :3, :3], ins.v_world, times,
         np.asarray(ins.covered, dtype=bool), lag,
@@ -1122,7 +1133,9 @@ def _bias_step_sigmas(
         own = white_noise(ins.T_world_base[:, :3, :3], times, ins.covered[:-1] & ins.covered[1:])
         white_var = 2.0 * float(own[2]) ** 2 if own is not None else 0.0
         span = heading.lag * float(np.median(np.diff(times)))
-        rot[2] = math.sqrt(max(heading.ins - white_var, 0.0) * sig.bias_knot_s / span)
+        # within what it differs from the odometry by (both errors add up there)
+        own_wander = math.sqrt(max(heading.ins - white_var, 0.0) * sig.bias_knot_s / span)
+        rot[2] = min(rot[2], own_wander)
         floor[2] = INS_WHITE_FLOOR
         health.metrics["fused_ins_wander_source_heading"] = 1.0
     out[:3] = np.clip(rot, floor, a_cap)  # about the track's axes (Problem.R_bias)
