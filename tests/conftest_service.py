@@ -102,7 +102,7 @@ def memory_celery() -> Any:
 
 
 def sent_tasks() -> list[dict[str, Any]]:
-    """Drain the in-memory 'celery' queue: [{"task", "id", "args"}]."""
+    """Drain the in-memory 'celery' queue: [{"task", "id", "args", "priority"}]."""
     from kombu import Connection
 
     out = []
@@ -114,9 +114,9 @@ def sent_tasks() -> list[dict[str, Any]]:
                     msg = queue.get(block=False)
                 except queue.Empty:
                     break
-                out.append(
-                    {"task": msg.headers["task"], "id": msg.headers["id"], "args": msg.payload[0]}
-                )
+                h, pri = msg.headers, msg.properties.get("priority")
+                out.append({"task": h["task"], "id": h["id"], "args": msg.payload[0],
+                            "priority": pri})  # fmt: skip
                 msg.ack()
         finally:
             queue.close()
