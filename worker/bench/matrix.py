@@ -552,7 +552,7 @@ def _fused_goal(cells: list[dict[str, Any]]) -> dict[str, Any]:
 def _auto_goals(cells: list[dict[str, Any]]) -> dict[str, Any]:
     """``auto`` within 1.25x of the best strategy at lag 10 (share of cells) and never worse
     than ``ins`` in rotation."""
-    within, never_worse_than_ins = [], []
+    within, never_worse_than_ins, worse = [], [], []
     for c in cells:
         best = min((_lag10(c, s, "r") for s in STRATEGIES[:-1]), key=lambda x: x or math.inf)
         a, ins = _lag10(c, "auto", "r"), _lag10(c, "ins", "r")
@@ -566,6 +566,8 @@ def _auto_goals(cells: list[dict[str, Any]]) -> dict[str, Any]:
                 ok = False
         within.append(ok)
         never_worse_than_ins.append(ins is None or a <= max(ins * 1.0001, 1e-3))
+        if not never_worse_than_ins[-1] and ins is not None:
+            worse.append(f"{c['name']} ({a:.3g} against {ins:.3g} deg)")
     share = float(np.mean(within)) if within else None
     return {
         "auto_within_1p25_of_best": {
@@ -576,6 +578,8 @@ def _auto_goals(cells: list[dict[str, Any]]) -> dict[str, Any]:
         "auto_never_worse_than_ins": {
             "ok": all(never_worse_than_ins),
             "cells": len(never_worse_than_ins),
+            "measured": f"{len(worse)} of {len(never_worse_than_ins)} cells worse",
+            "cells_worse": worse,
         },
     }
 
@@ -883,6 +887,10 @@ def to_markdown(result: dict[str, Any], stamp: str = "") -> str:
     if missing.get("cells_missing"):
         lines += ["", "Cells where fused is more than 10 % worse than the better of ins and "
                   "odometry at some lag: " + ", ".join(missing["cells_missing"]) + "."]  # fmt: skip
+    worse = (summ.get("goals") or {}).get("auto_never_worse_than_ins", {})
+    if worse.get("cells_worse"):
+        lines += ["", "Cells where auto's lag-10 rotation error is worse than ins's: "
+                  + ", ".join(worse["cells_worse"]) + "."]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
