@@ -18,7 +18,7 @@ from sqlalchemy import func, select, update
 
 from osdar_platform.models import Job, JobState
 from tests.conftest_service import Api, make_settings, memory_celery, sent_tasks
-from worker.orchestration.queue import TASK_RUN_JOB
+from worker.orchestration.queue import PRIORITY_JOB, TASK_RUN_JOB
 
 TETRA_OBJ = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
 
@@ -220,7 +220,9 @@ def test_submit_queues_the_job_and_sends_the_message(api: Api) -> None:
     assert job["state"] == "QUEUED"
     assert job["progress"] == {"done": 0, "total": 3}
     assert job["spec"]["object"] == {"builtin": "cow", "asset_id": None, "scale": 1.0}
-    assert sent_tasks() == [{"task": TASK_RUN_JOB, "id": job["id"], "args": [job["id"]]}]
+    assert sent_tasks() == [
+        {"task": TASK_RUN_JOB, "id": job["id"], "args": [job["id"]], "priority": PRIORITY_JOB}
+    ]
     events = api.client.get(f"/v1/jobs/{job['id']}/events", headers=api.h()).json()
     assert [e["kind"] for e in events] == ["created", "queued"]
 
