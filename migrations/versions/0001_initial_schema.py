@@ -28,6 +28,14 @@ JOB_STATES = ("PENDING", "QUEUED", "RUNNING", "SUCCEEDED", "FAILED", "CANCELLED"
 
 
 def upgrade() -> None:
+    _api_keys()
+    _sequences()
+    _assets()
+    _jobs()
+    _job_events()
+
+
+def _api_keys() -> None:
     op.create_table(
         "api_keys",
         sa.Column("id", BigIntPK, autoincrement=True, nullable=False),
@@ -39,6 +47,9 @@ def upgrade() -> None:
         sa.PrimaryKeyConstraint("id", name="pk_api_keys"),
         sa.UniqueConstraint("key_hash", name="uq_api_keys_key_hash"),
     )
+
+
+def _sequences() -> None:
     op.create_table(
         "sequences",
         sa.Column("id", sa.String(36), nullable=False),
@@ -62,6 +73,9 @@ def upgrade() -> None:
         sa.PrimaryKeyConstraint("id", name="pk_sequences"),
     )
     op.create_index("ix_sequences_owner_created", "sequences", ["owner_id", "created_at"])
+
+
+def _assets() -> None:
     op.create_table(
         "assets",
         sa.Column("id", sa.String(36), nullable=False),
@@ -79,6 +93,9 @@ def upgrade() -> None:
         sa.PrimaryKeyConstraint("id", name="pk_assets"),
     )
     op.create_index("ix_assets_owner_created", "assets", ["owner_id", "created_at"])
+
+
+def _jobs() -> None:
     op.create_table(
         "jobs",
         sa.Column("id", sa.String(36), nullable=False),
@@ -123,6 +140,9 @@ def upgrade() -> None:
     op.create_index("ix_jobs_owner_state", "jobs", ["owner_id", "state"])
     op.create_index("ix_jobs_state_created", "jobs", ["state", "created_at"])
     op.create_index("ix_jobs_sequence_id", "jobs", ["sequence_id"])
+
+
+def _job_events() -> None:
     op.create_table(
         "job_events",
         sa.Column("id", BigIntPK, autoincrement=True, nullable=False),
