@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from datetime import timedelta
+from datetime import datetime, timedelta
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import func, or_, select, update
@@ -226,6 +226,20 @@ def requeue_pending(
     return sent
 
 
+def _claim_resend(
+    session: Session, campaign_id: str, state: CampaignState, cut: datetime, now: datetime
+) -> bool:
+    """Claim the re-send of a campaign left in ``state`` since before ``cut``: one
+    conditional row update (its ``updated_at`` to ``now``), committed; True for the one
+    caller that made it."""
+    if updated_rows(session, update(Campaign).where(
+            Campaign.id == campaign_id, Campaign.state == state,
+            Campaign.updated_at < cut).values(updated_at=now)):  # fmt: skip
+        session.commit()
+        return True
+    return False
+
+
 def nudge_campaign(
     *,
     session: Session,
@@ -250,10 +264,7 @@ def nudge_campaign(
     try:
         if c.state == CampaignState.PENDING:
             cut = now - timedelta(seconds=settings.reaper_orphan_grace_s)
-            if updated_rows(session, update(Campaign).where(
-                    Campaign.id == c.id, Campaign.state == CampaignState.PENDING,
-                    Campaign.updated_at < cut).values(updated_at=now)):  # fmt: skip
-                session.commit()
+            if _claim_resend(session, c.id, CampaignState.PENDING, cut, now):
                 send_expand(c.id)
         elif c.state == CampaignState.EXPANDING:
             # the expansion beats its heart (stage, updated_at) as it prepares; silent for
@@ -262,10 +273,7 @@ def nudge_campaign(
                 settings.task_time_limit_s + settings.visibility_margin_s
             )
             cut = now - timedelta(seconds=stale)
-            if updated_rows(session, update(Campaign).where(
-                    Campaign.id == c.id, Campaign.state == CampaignState.EXPANDING,
-                    Campaign.updated_at < cut).values(updated_at=now)):  # fmt: skip
-                session.commit()
+            if _claim_resend(session, c.id, CampaignState.EXPANDING, cut, now):
                 send_expand(c.id)
         elif c.state == CampaignState.RUNNING:
             unfinished = session.scalar(
