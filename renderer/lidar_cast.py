@@ -21,21 +21,10 @@ What this does not do (and why)
   point drifts along the track by up to speed x 50 ms within a sweep; that residual is
   not modelled.
 
-Sensor noise (:func:`estimate_lidar_noise`, ``range_sigma`` and ``dropout`` of
-:func:`cast_object`): object points get the range noise and the dropout rate of their
-own sensor, measured on the real points of the same ``sensor_index`` on the surfaces
-around the object (a shell ``NOISE_SHELL_M`` around its bounding sphere):
-
-- range noise: each point's distance to the plane fitted (PCA) to its
-  ``NOISE_NEIGHBOURS`` nearest neighbours of the same sensor (itself excluded), divided
-  by ``|cos(incidence)|`` (the plane residual of a range error e is e |cos|), robust std
-  (1.4826 MAD) over the non-degenerate neighbourhoods, corrected for the plane fit's own
-  error (x ``1 / sqrt(1 + 1 / k)``). It includes the surface's roughness (ballast);
-- dropout: rings are found as clusters of the elevation angle seen from the sensor's
-  origin; along a ring, sorted by azimuth, a gap of g azimuth steps (the ring's median
-  step) within a surface (g < ``MAX_GAP_STEPS``) holds g - 1 missing returns; dropout =
-  missing / (missing + returned). A sensor without ring structure (non-repetitive
-  scan patterns) gets 0 (``LidarNoise.rings`` = 0).
+Sensor noise (``range_sigma`` and ``dropout`` of :func:`cast_object`): object points
+get the range noise and the dropout rate of their own sensor, measured on the real
+points of the same ``sensor_index`` around the object
+(:func:`renderer.lidar_noise.measure_lidar_noise`).
 
 A dropped object point is a ray that returned nothing: :func:`cast_object` removes it
 from the cloud (``LidarCastResult.kept``); with ``dropout = 0`` (the default) the point
@@ -55,7 +44,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
 from geometry.transforms import invert_T, pose_to_T
 from renderer.mesh import ObjectMesh
@@ -66,11 +54,6 @@ logger = logging.getLogger(__name__)
 _MIN_RANGE_M = 1e-3
 """Points closer to their origin than this are never cast (no direction)."""
 _NOISE_TRUNCATION = 3.0
-NOISE_SHELL_M = 10.0
-NOISE_NEIGHBOURS = 20
-NOISE_MAX_POINTS = 4000
-MAX_GAP_STEPS = 6
-_RING_GAP_DEG = 0.12
 
 
 @dataclass
@@ -190,8 +173,9 @@ def cast_object(
         rounded when the input's intensities of that sensor are all integers.
     seed : seeds the optional noises below.
     range_sigma : Gaussian range noise (m, truncated at 3 sigma) added along the ray to
-        object points, per sensor_index (dict, e.g. from :func:`estimate_lidar_noise`)
-        or for all; 0 = exactly on the surface.
+        object points, per sensor_index (dict, e.g. from
+        :func:`renderer.lidar_noise.measure_lidar_noise`) or for all; 0 = exactly on the
+        surface.
     intensity_noise : relative Gaussian intensity noise on object points.
     dropout : probability that an object ray returns nothing (per sensor_index or for
         all): such points are removed (``LidarCastResult.kept``).
@@ -383,97 +367,6 @@ class LidarNoise:
     dropout: float
     points: int
     rings: int
-
-
-def estimate_lidar_noise(
-    fields: Mapping[str, np.ndarray],
-    origins_base: Mapping[int, ArrayLike] | ArrayLike,
-    centre_base: ArrayLike,
-    radius: float,
-    *,
-    shell_m: float = NOISE_SHELL_M,
-    seed: int = 0,
-) -> dict[int, LidarNoise]:
-    """Range noise and dropout per sensor_index from the real points in the shell
-    ``radius < |p - centre_base| < radius + shell_m`` (base frame) around the object.
-
-    Returns {sensor_index: LidarNoise} (key 0 for a cloud without sensor_index).
-    """
-    xyz = np.stack([np.asarray(fields[k], dtype=np.float64) for k in "xyz"], axis=1)
-    o_all = point_origins(fields, origins_base)
-    d = np.linalg.norm(xyz - np.asarray(centre_base, np.float64).reshape(1, 3), axis=1)
-    shell = np.isfinite(d) & (d > radius) & (d < radius + shell_m)
-    sidx = (np.asarray(fields["sensor_index"]).astype(np.int64) if "sensor_index" in fields
-            else np.zeros(len(xyz), np.int64))  # fmt: skip
-    rng = np.random.default_rng([int(seed) & (2**63 - 1), 0x401CE])
-    out: dict[int, LidarNoise] = {}
-    for s in np.unique(sidx[shell]):
-        sel = np.flatnonzero(shell & (sidx == s))
-        p, o = xyz[sel], o_all[sel]
-        sigma = _range_sigma(p, o, rng)
-        drop, rings = _dropout(p, o)
-        out[int(s)] = LidarNoise(sigma, drop, len(sel), rings)
-        logger.debug("lidar noise sensor %d: %d points, range sigma %.4f m, dropout %.3f "
-                     "(%d rings)", s, len(sel), sigma, drop, rings)  # fmt: skip
-    return out
-
-
-def _range_sigma(p: F64, o: F64, rng: np.random.Generator) -> float:
-    """Robust range noise std (m) from plane residuals of the k nearest neighbours."""
-    k = NOISE_NEIGHBOURS
-    if len(p) < k + 1:
-        return float("nan")
-    tree = cKDTree(p)
-    probe = np.arange(len(p))
-    if len(probe) > NOISE_MAX_POINTS:
-        probe = np.sort(rng.choice(len(p), NOISE_MAX_POINTS, replace=False))
-    _, nb = tree.query(p[probe], k=k + 1)
-    nbrs = p[nb[:, 1:]]  # (m, k, 3), the point itself left out
-    c = nbrs.mean(axis=1)
-    q = nbrs - c[:, None]
-    cov = np.einsum("mki,mkj->mij", q, q) / k
-    w, v = np.linalg.eigh(cov)  # ascending
-    n = v[:, :, 0]
-    ok = w[:, 1] > 0.05 * w[:, 2]  # not collinear (one ring's points alone)
-    ray = p[probe] - o[probe]
-    ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
-    cos = np.abs(np.einsum("ij,ij->i", n, ray))
-    ok &= cos > 0.25
-    if ok.sum() < 20:
-        return float("nan")
-    r = np.einsum("ij,ij->i", p[probe] - c, n)[ok] / cos[ok]
-    mad = float(np.median(np.abs(r - np.median(r))))
-    return 1.4826 * mad / np.sqrt(1.0 + 1.0 / k)
-
-
-def _dropout(p: F64, o: F64) -> tuple[float, int]:
-    """(dropout fraction, rings found) from the azimuth gaps along elevation rings."""
-    v = p - o
-    rng_m = np.linalg.norm(v, axis=1)
-    el = np.degrees(np.arcsin(np.clip(v[:, 2] / np.maximum(rng_m, 1e-12), -1.0, 1.0)))
-    az = np.degrees(np.arctan2(v[:, 1], v[:, 0]))
-    order = np.argsort(el)
-    gaps = np.flatnonzero(np.diff(el[order]) > _RING_GAP_DEG)
-    rings = np.split(order, gaps + 1)
-    missing = returned = 0
-    n_rings = 0
-    for ring in rings:
-        if len(ring) < 20:
-            continue
-        a = np.sort(az[ring])
-        da = np.diff(a)
-        da = da[da > 1e-6]
-        if len(da) < 10:
-            continue
-        step = float(np.median(da))
-        g = np.round(da / step)
-        inside = g < MAX_GAP_STEPS
-        missing += int(np.sum(g[inside] - 1.0))
-        returned += int(inside.sum()) + 1
-        n_rings += 1
-    if n_rings < 2 or returned == 0:
-        return 0.0, 0
-    return missing / (missing + returned), n_rings
 
 
 def _intensity_values(

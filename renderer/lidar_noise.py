@@ -45,7 +45,8 @@ Dropout: missing times on a scan line
     returned)`` over the steps that qualify.
 
 Without a ``timestamp`` field the neighbours are the ``NOISE_NEIGHBOURS`` nearest in
-direction (a 2-D patch, more often across an edge) and the dropout is 0 (``rings`` 0).
+direction (a 2-D patch, more often across an edge) and the dropout comes from the gaps
+along elevation rings (:func:`ring_dropout`; 0 for a sensor without ring structure).
 """
 
 from __future__ import annotations
@@ -72,6 +73,8 @@ MIN_NOISE_POINTS = 60
 MAX_LEVERAGE = 10.0
 MAX_GAP_STEPS = 6
 SURFACE_RANGE_STEP = 0.1
+#: Elevation gap (deg) between two rings (:func:`ring_dropout`).
+RING_GAP_DEG = 0.12
 EM_ITERATIONS = 60
 SCAN_MARGIN_M = 2.0
 _MAD_TO_SIGMA = 1.4826
@@ -246,9 +249,11 @@ def dropout_rate(
     and timestamps (n,): missing steps along the scan lines within one surface (module
     docstring), over the steps that start at a ``counted`` point (n,) (default all).
     rings: the median points per column (the beams; 0 for one point per
-    column, a rosette). (0, 0) without times."""
-    if t is None or len(p) < 20:
+    column, a rosette). Without times: :func:`ring_dropout`."""
+    if len(p) < 20:
         return 0.0, 0
+    if t is None:
+        return ring_dropout(p, o)
     col = scan_columns(t)
     if col is None:
         return 0.0, 0
@@ -274,3 +279,35 @@ def dropout_rate(
     if returned == 0:
         return 0.0, rings
     return missing / (missing + returned), rings
+
+
+def ring_dropout(p: F64, o: F64) -> tuple[float, int]:
+    """(dropout fraction, rings found) without timestamps: rings as clusters of the
+    elevation seen from the origins, a gap of g azimuth steps (the ring's median step,
+    g < MAX_GAP_STEPS) holding g - 1 missing returns; (0, 0) without ring structure."""
+    v = p - o
+    rng_m = np.linalg.norm(v, axis=1)
+    el = np.degrees(np.arcsin(np.clip(v[:, 2] / np.maximum(rng_m, 1e-12), -1.0, 1.0)))
+    az = np.degrees(np.arctan2(v[:, 1], v[:, 0]))
+    order = np.argsort(el)
+    gaps = np.flatnonzero(np.diff(el[order]) > RING_GAP_DEG)
+    rings = np.split(order, gaps + 1)
+    missing = returned = 0
+    n_rings = 0
+    for ring in rings:
+        if len(ring) < 20:
+            continue
+        a = np.sort(az[ring])
+        da = np.diff(a)
+        da = da[da > 1e-6]
+        if len(da) < 10:
+            continue
+        step = float(np.median(da))
+        g = np.round(da / step)
+        inside = g < MAX_GAP_STEPS
+        missing += int(np.sum(g[inside] - 1.0))
+        returned += int(inside.sum()) + 1
+        n_rings += 1
+    if n_rings < 2 or returned == 0:
+        return 0.0, 0
+    return missing / (missing + returned), n_rings

@@ -13,11 +13,11 @@ from geometry.transforms import invert_T, make_T
 from renderer.assets.obstacles import build_obstacle
 from renderer.lidar_cast import (
     cast_object,
-    estimate_lidar_noise,
     hidden_from,
     origins_from_json,
     point_origins,
 )
+from renderer.lidar_noise import measure_lidar_noise
 from renderer.mesh import ObjectMesh
 from worker.synth.lidar_sim import LidarSimulator, default_sensors, sensors_to_json
 from worker.synth.scene_mesh import MATERIAL_ID, SceneMesh
@@ -249,7 +249,7 @@ def test_noise_and_dropout_measured_from_the_real_points(sigma, drop, seed) -> N
     b = ring_cloud(2 * sigma, 0.5 * drop, seed + 10, origin=(0.0, 0.3, 2.2), sensor=1)
     cloud = {k: np.concatenate([a[k], b[k]]) for k in a}
     origins = {0: np.array([0.0, 0.0, 2.0]), 1: np.array([0.0, 0.3, 2.2])}
-    est = estimate_lidar_noise(cloud, origins, centre_base=[15.0, 0.0, 0.8], radius=1.5)
+    est = measure_lidar_noise(cloud, origins, centre_base=[15.0, 0.0, 0.8], radius=1.5)
     for s, (sg, dr) in {0: (sigma, drop), 1: (2 * sigma, 0.5 * drop)}.items():
         e = est[s]
         assert 0.8 <= e.range_sigma_m / sg <= 1.25, (s, e)

@@ -83,12 +83,13 @@ def test_rosette_range_noise_and_dropout(sigma: float, seed: int) -> None:
 
 
 def test_without_timestamps_the_direction_neighbours_do() -> None:
-    """The fallback (2-D patches, more often across an edge) on a ground without steps."""
+    """The fallback (2-D patches, more often across an edge) on a ground without steps;
+    the dropout from the gaps along elevation rings (none here)."""
     cloud = spinning_scan(0.02, 0.0, 5, slabs=False)
     del cloud["timestamp"]
     n = measure_lidar_noise(cloud, {0: [0.0, 0.0, H]}, [15.0, 0.0, 1.0], 1.5, shell_m=12.0)[0]
     assert 0.8 <= n.range_sigma_m / 0.02 <= 1.25, n
-    assert n.dropout == 0.0 and n.rings == 0
+    assert n.dropout < 0.01 and n.rings >= 5, n
 
 
 def test_residuals_are_exact_on_a_plane_seen_from_any_origin() -> None:

@@ -202,7 +202,7 @@ class RenderSpec(_Section):
         the input images' resolution (kept for the service's spec; see from_job_spec).
     lidar_noise : the object's lidar points get their sensor's range noise and dropout,
         measured per frame on the real points around the object
-        (:func:`renderer.lidar_cast.estimate_lidar_noise`); False: exactly on the
+        (:func:`renderer.lidar_noise.measure_lidar_noise`); False: exactly on the
         object's surface, none dropped. Off by default: on the synthetic sequences the
         estimate is 1.7-30x the sensors' true range noise (tests/augmentation/
         test_frame.py), so turned on it would scatter the object more than the scene.
