@@ -208,8 +208,10 @@ def test_estimate_alignment_on_too_sparse_clouds_applies_nothing(tiny_sequence):
 #: before measuring: for every applied correction, the RMS displacement of the lidar's
 #: points between the estimated and the true correction (what is left of the merge's
 #: inconsistency) at most 1 cm, and less than without the correction where there was an
-#: error to correct.
+#: error to correct;
 GEN_POINT_RMS_M = 0.01
+#: and the rotation error in the observed directions at most 0.02 deg.
+GEN_ROT_DEG = 0.02
 
 
 def _generated(root: Path, frames: int, seed: int, merge: tuple[float, float] | None) -> Path:
@@ -241,30 +243,42 @@ MISS = pytest.mark.xfail(
 )
 
 
+_CASES: dict[tuple, tuple] = {}
+
+
+def _case(tmp_path_factory, frames: int, seed: int, merge) -> tuple:
+    """(alignment, the true merge errors, the first frame's clouds) of a generated
+    sequence, once per parameters (both tests below read the same run)."""
+    key = (frames, seed, merge)
+    if key not in _CASES:
+        folder = _generated(tmp_path_factory.mktemp("gen"), frames, seed, merge)
+        clouds = FrameClouds(Sequence.open(folder), max_range=100.0)
+        al = estimate_alignment(clouds)
+        E = {
+            int(k): np.asarray(v)
+            for k, v in json.loads(
+                (folder / "ground_truth" / "lidar_merge_errors.json").read_text()
+            ).items()
+        }
+        _CASES[key] = (al, E, clouds.get(al.frames[0]))
+    return _CASES[key]
+
+
+CASES = [
+    pytest.param(30, 0, None, id="30f-seed0-merge_error"),
+    pytest.param(30, 0, (0.0, 0.0), id="30f-seed0-no_merge_error"),
+    pytest.param(8, 3, None, marks=MISS, id="8f-seed3-merge_error"),
+    pytest.param(8, 3, (0.0, 0.0), marks=MISS, id="8f-seed3-no_merge_error"),
+]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    ("frames", "seed", "merge"),
-    [
-        pytest.param(30, 0, None, id="30f-seed0-merge_error"),
-        pytest.param(30, 0, (0.0, 0.0), id="30f-seed0-no_merge_error"),
-        pytest.param(8, 3, None, marks=MISS, id="8f-seed3-merge_error"),
-        pytest.param(8, 3, (0.0, 0.0), marks=MISS, id="8f-seed3-no_merge_error"),
-    ],
-)
-def test_generator_merge_errors_are_recovered(tmp_path, frames, seed, merge):
-    folder = _generated(tmp_path, frames, seed, merge)
-    clouds = FrameClouds(Sequence.open(folder), max_range=100.0)
-    al = estimate_alignment(clouds)
-    E = {
-        int(k): np.asarray(v)
-        for k, v in json.loads(
-            (folder / "ground_truth" / "lidar_merge_errors.json").read_text()
-        ).items()
-    }
+@pytest.mark.parametrize(("frames", "seed", "merge"), CASES)
+def test_generator_merge_errors_are_recovered(tmp_path_factory, frames, seed, merge):
+    al, E, fc = _case(tmp_path_factory, frames, seed, merge)
     assert al.reference == 0
     assert al.corrections(), al.warnings
     ref = E.get(0, np.eye(4))
-    fc = clouds.get(al.frames[0])
     misses = {}
     for s, c in al.sensors.items():
         if not c.applied:
@@ -280,4 +294,35 @@ def test_generator_merge_errors_are_recovered(tmp_path, frames, seed, merge):
         after, before = _rms_at(p, c.T_ref_sensor, true), _rms_at(p, np.eye(4), true)
         if after > GEN_POINT_RMS_M or (before > GEN_POINT_RMS_M and after >= before):
             misses[s] = (round(before, 4), round(after, 4))
+    assert not misses, misses
+
+
+# Measured miss (the bound stays): in the observed directions, lidar 3 0.141 deg with the
+# merge error on, lidar 2 0.022 deg without it (30 frames, seed 0), while their points
+# move by less than 1 cm: a short-range lidar's rotation barely moves its points.
+ROT_MISS = pytest.mark.xfail(
+    strict=True, reason="measured miss: observed rotation errors 0.022-0.141 deg"
+)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("frames", "seed", "merge"),
+    [pytest.param(*c.values, marks=ROT_MISS, id=c.id) for c in CASES[:2]],
+)
+def test_generator_merge_rotations_are_recovered(tmp_path_factory, frames, seed, merge):
+    """Every applied correction's rotation error in the directions the overlap observes
+    (the others stay zero by design) within GEN_ROT_DEG."""
+    al, E, _ = _case(tmp_path_factory, frames, seed, merge)
+    ref = E.get(0, np.eye(4))
+    misses = {}
+    for s, c in al.sensors.items():
+        if not c.applied:
+            continue
+        true = ref @ np.linalg.inv(E.get(s, np.eye(4)))
+        err = _twist(np.linalg.inv(true) @ c.T_ref_sensor)
+        seen = c.basis @ np.linalg.lstsq(c.basis, err, rcond=None)[0]
+        rot = float(np.degrees(np.linalg.norm(seen[3:])))
+        if rot > GEN_ROT_DEG:
+            misses[s] = round(rot, 4)
     assert not misses, misses
