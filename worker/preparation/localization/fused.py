@@ -830,8 +830,15 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     )
     bias_sigma = np.array([sig.att_bias] * 3 + [sig.pos_bias] * 3)
     ground = _ground_constraints(inp, health, sig) if n >= 2 else None
-    bias_step = _bias_step_sigmas(inp, ins, p_ins_all, degenerate, health, sig, ground, heading_err)
-    white = _ins_attitude_white(inp, ins, ground, health, sig)
+    covered = np.asarray(ins.covered, dtype=bool)
+    # the INS attitude's own white noise (third differences), for the heading's two uses
+    own_white = white_noise(
+        R_ins_all, np.asarray(inp.times, dtype=np.float64), covered[:-1] & covered[1:]
+    )
+    bias_step = _bias_step_sigmas(
+        inp, ins, p_ins_all, degenerate, health, sig, ground, heading_err, own_white
+    )
+    white = _ins_attitude_white(inp, ins, ground, health, sig, own_white)
     if rail is None:
         # Nothing else fixes the absolute attitude: the INS's is taken as is.
         bias_sigma[:3] = 0.005 * DEG
@@ -904,7 +911,12 @@ INS_WHITE_FLOOR = 0.002 * DEG
 
 
 def _ins_attitude_white(
-    inp: LocalizationInput, ins: InsFrames, ground: dict | None, health: Health, sig: Sigmas
+    inp: LocalizationInput,
+    ins: InsFrames,
+    ground: dict | None,
+    health: Health,
+    sig: Sigmas,
+    own: F64 | None = None,
 ) -> F64 | None:
     """(3,) the INS attitude's white noise per record (rad) about roll, pitch and heading,
     measured over one frame step, within [INS_WHITE_FLOOR, ``sig.ins_r``]; None when it
@@ -943,7 +955,6 @@ def _ins_attitude_white(
         )
         if v is not None:
             var[:2] = v["ins"]
-    own = white_noise(R_ins, np.asarray(inp.times, dtype=np.float64), covered[:-1] & covered[1:])
     if own is not None:  # the heading against the odometry counts the odometry's step error
         var[2] = min(var[2], 2.0 * own[2] ** 2)
     white = np.clip(np.sqrt(var / 2.0), INS_WHITE_FLOOR, sig.ins_r)
@@ -1094,6 +1105,7 @@ def _bias_step_sigmas(
     sig: Sigmas,
     ground: dict | None = None,
     heading: HeadingErrors | None = None,
+    own_white: F64 | None = None,
 ) -> F64:
     """(6,) sigmas of the INS bias' change between knots: attitude about the track's axes
        (roll, pitch, heading: :func:`_track_axes`, rad), position along world x, y, z (m),
@@ -1130,8 +1142,7 @@ def _bias_step_sigmas(
         floor[:2] = INS_WHITE_FLOOR
         health.metrics["fused_ins_wander_source_level"] = 1.0
     if heading is not None:  # the course over ground is the heading's third source
-        own = white_noise(ins.T_world_base[:, :3, :3], times, ins.covered[:-1] & ins.covered[1:])
-        white_var = 2.0 * float(own[2]) ** 2 if own is not None else 0.0
+        white_var = 2.0 * float(own_white[2]) ** 2 if own_white is not None else 0.0
         span = heading.lag * float(np.median(np.diff(times)))
         # within what it differs from the odometry by (both errors add up there)
         own_wander = math.sqrt(max(heading.ins - white_var, 0.0) * sig.bias_knot_s / span)
