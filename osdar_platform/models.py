@@ -194,6 +194,16 @@ class Job(Base):
     broker_seen_at: Mapped[datetime | None] = mapped_column(Timestamp, default=None)
     #: The broker sentinel's token the reaper last re-sent the job under (its own sends).
     broker_run_id: Mapped[str | None] = mapped_column(String(64), default=None)
+    #: The join of the current attempt's chunks before its ``finish``
+    #: (worker/orchestration/chunk_join.py), reset by every new attempt: how many chunks
+    #: the attempt has (0: not planned yet), the results of those done ({index: store
+    #: keys}), and the one ``finish`` sent for them: its token (the message carrying
+    #: another is a stale duplicate), when it was sent, when it started.
+    chunks_total: Mapped[int] = mapped_column(Integer, default=0)
+    chunks_done: Mapped[dict[str, Any] | None] = mapped_column(JSON, default=None)
+    finish_token: Mapped[str | None] = mapped_column(String(32), default=None)
+    finish_sent_at: Mapped[datetime | None] = mapped_column(Timestamp, default=None)
+    finish_started_at: Mapped[datetime | None] = mapped_column(Timestamp, default=None)
 
     events: Mapped[list[JobEvent]] = relationship(
         back_populates="job", cascade="all, delete-orphan", order_by="JobEvent.id"
