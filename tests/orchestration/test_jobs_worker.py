@@ -274,6 +274,43 @@ def test_a_termination_inside_a_stage_leaves_the_job_to_redelivery(
     assert job.state == JobState.RUNNING and job.error is None
 
 
+def test_a_chunk_delivered_again_is_counted_once_and_not_redone(
+    tmp_path: Path, seq_folder: Path
+) -> None:
+    """The join before finish (chunk_join.py) with the real stages: each chunk recorded
+    once; a chunk delivered again after its record returns it without a stage; the claim
+    hands out one finish token, and finish reads the chunks from the job's row."""
+    from worker.orchestration import chunk_join, runner
+
+    settings = _migrated(_settings(tmp_path))
+    owner, seq_id = _owner_and_sequence(settings, seq_folder)
+    job_id = _new_job(settings, owner, seq_id)
+    kw: dict[str, Any] = {"attempt": runner.start_job(job_id, settings=settings)}
+    kw["settings"] = settings
+    runner.fetch_sequence(job_id, **kw)
+    runner.prepare_for_job(job_id, **kw)
+    plan = runner.plan_chunks(job_id, **kw)
+    assert len(plan) == 2 and _job(settings, job_id).chunks_total == 2
+    first = runner.augment_chunk(job_id, 0, plan[0], **kw)
+    assert chunk_join.claim_finish(job_id, kw["attempt"], settings=settings) is None
+    assert runner.augment_chunk(job_id, 0, plan[0], **kw) == first  # delivered again
+    second = runner.augment_chunk(job_id, 1, plan[1], **kw)
+    token = chunk_join.claim_finish(job_id, kw["attempt"], settings=settings)
+    assert token is not None
+    assert chunk_join.claim_finish(job_id, kw["attempt"], settings=settings) is None
+    with session_scope(settings) as s:
+        stages = list(s.scalars(select(JobEvent.message).where(
+            JobEvent.job_id == job_id, JobEvent.kind == "stage_delivered")))  # fmt: skip
+    assert stages.count("augment[0]") == 1 and stages.count("augment[1]") == 1
+    assert _job(settings, job_id).chunks_done == {"0": first, "1": second}
+    runner.finish_job(job_id, token=token, **kw)
+    assert _job(settings, job_id).finish_started_at is not None
+    run = runner.JobRun(job_id, kw["attempt"], settings)
+    folder = runner.output_sequence(run)  # assembled here: no rebuild from the store
+    assert (folder.parent / ".complete").is_file()
+    assert len(list(folder.rglob("*.png"))) == 2 * 4  # 2 cameras x 4 frames, both chunks
+
+
 def test_finish_killed_while_moving_chunk_files_runs_again(
     tmp_path: Path, seq_folder: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

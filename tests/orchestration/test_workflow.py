@@ -1,7 +1,9 @@
 """How a job's stages are sent (worker/orchestration/tasks.py, queue.py).
 
-- One chunk of frames is a plain link to ``finish``: no chord, whose end the database
-  result backend finds by polling once a second.
+- ``run_job`` sends fetch -> prepare -> the chunks (a group; one chunk alone), and no
+  ``finish``: the chunk that completes the last one sends it (chunk_join.py). No chord,
+  whose end the database result backend finds by polling once a second, and no task
+  stores a result.
 - A job's first message carries a priority: a direct job 3, a campaign's variant 6, every
   later stage the default 0 (served first on Redis): workers finish what they started, and
   a direct job starts before campaign variants queued earlier.
@@ -12,14 +14,16 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-from celery import chord
+from celery import group
 
 from osdar_platform.settings import Settings
 from tests.conftest_service import Api, memory_celery, sent_tasks, sqlite_api
 from worker.campaign.service_expand import expand_campaign_stage
+from worker.orchestration import tasks
 from worker.orchestration.celery_app import make_celery
+from worker.orchestration.chunk_join import send_finish
 from worker.orchestration.queue import PRIORITY_CAMPAIGN_VARIANT, PRIORITY_JOB, TASK_RUN_JOB
-from worker.orchestration.tasks import finish, workflow
+from worker.orchestration.tasks import workflow
 
 SEQ = {"scene": "fire_site", "frames": 4, "scale": 0.05, "lidar_density": 0.05, "seed": 2}
 
@@ -27,33 +31,34 @@ SEQ = {"scene": "fire_site", "frames": 4, "scale": 0.05, "lidar_density": 0.05, 
 def _names(canvas: object) -> list[str]:
     out = []
     for t in canvas.tasks:  # type: ignore[attr-defined]
-        out.append("chord" if isinstance(t, chord) else t.task.removeprefix("osdar_ar."))
+        out.append("group" if isinstance(t, group) else t.task.removeprefix("osdar_ar."))
     return out
 
 
-def test_one_chunk_is_a_link_and_several_a_chord(tmp_path: object) -> None:
+def test_the_workflow_ends_with_the_chunks_and_no_chord(tmp_path: object) -> None:
     app = make_celery(Settings(data_dir=str(tmp_path)))
     one = workflow(app, "j", 1, [[0, 1, 2]])
-    assert _names(one) == ["fetch", "prepare", "augment_chunk", "finish", "evaluate",
-                           "package", "publish"]  # fmt: skip
-    assert one.tasks[2].immutable and not one.tasks[3].immutable  # finish gets the chunk
+    assert _names(one) == ["fetch", "prepare", "augment_chunk"]
+    assert one.tasks[2].args == ("j", 1, 0, [0, 1, 2]) and one.tasks[2].immutable
     two = workflow(app, "j", 1, [[0, 1], [2]])
-    # the stages after the chord are its body (Celery folds them in)
-    assert _names(two) == ["fetch", "prepare", "chord"]
-    assert [s.args[2] for s in two.tasks[2].tasks] == [0, 1]
-    assert _names(two.tasks[2].body) == ["finish", "evaluate", "package", "publish"]
+    assert _names(two) == ["fetch", "prepare", "group"]
+    assert [(s.args[2], s.args[3]) for s in two.tasks[2].tasks] == [(0, [0, 1]), (1, [2])]
+    # prepare's return value (the preparation key) is no chunk's argument
+    assert all(s.immutable for s in [*two.tasks[:2], *two.tasks[2].tasks])
+    # no task stores a result: nothing for a chord, nothing polled
+    assert app.conf.task_ignore_result
+    for name in tasks.TASK_NAMES:
+        task = getattr(tasks, name.split(".")[1], None)
+        assert task is None or task.ignore_result, name
 
 
-def test_finish_takes_one_chunk_or_the_chords_list(monkeypatch: pytest.MonkeyPatch) -> None:
-    seen: list[object] = []
-    monkeypatch.setattr(
-        "worker.orchestration.runner.finish_job",
-        lambda job_id, chunks, attempt: seen.append(chunks) or {"frames": len(chunks)},
-    )
-    chunk = {"index": 0, "frames": [0], "files": "f", "records": "r"}
-    assert finish.run(chunk, "j", 1) == {"frames": 1}
-    assert finish.run([chunk, chunk], "j", 1) == {"frames": 2}
-    assert seen == [[chunk], [chunk, chunk]]
+def test_the_finish_chain_carries_the_token() -> None:
+    app = memory_celery()
+    sent_tasks()
+    send_finish(app, "j", 2, "t" * 32)
+    (first,) = sent_tasks()  # the later stages ride in the message's chain
+    assert first["task"] == "osdar_ar.finish" and first["args"] == ["j", 2, "t" * 32]
+    assert first["priority"] in (None, 0)
 
 
 @pytest.fixture(scope="module")

@@ -19,10 +19,11 @@ it so, and the job code (``runner.py``, ``state.py``) makes the effects exactly 
   ready: jobs left RUNNING by a task stopped at the hard time limit, or whose messages a
   broker restart lost, are re-queued (or FAILED once delivered ``max_deliveries`` times).
 
-Results: job state lives in our ``jobs`` table; Celery's result backend is used only by
-the chord over frame chunks (its header must store results), so results are ignored by
-default and the backend is the database (``db+`` URL; SQLite gets its own file so that
-Celery's writes never wait on the API's).
+Results: job state lives in our ``jobs`` table, and so does the join of a job's chunks of
+frames (``chunk_join.py``; a chord on the database result backend was finished by
+``celery.chord_unlock`` polling once a second). No task stores a result: they are
+ignored everywhere, and the backend (the database, ``db+`` URL; SQLite gets its own
+file) is only configured, never written.
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         "result_backend_transport_options": {"visibility_timeout": vt},
         "result_expires": RESULT_EXPIRES_S,
         "result_extended": False,
-        "task_ignore_result": True,  # the chunk tasks of the chord opt back in
+        "task_ignore_result": True,  # every task: the job's state is in our tables
         "task_acks_late": True,
         "task_reject_on_worker_lost": True,
         "task_track_started": True,

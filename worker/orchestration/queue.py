@@ -42,6 +42,14 @@ TASK_RUN_JOB = "osdar_ar.run_job"
 #: service_finalize.py): the expansion into variant jobs, and the manifest at the end.
 TASK_EXPAND_CAMPAIGN = "osdar_ar.campaign_expand"
 TASK_FINALIZE_CAMPAIGN = "osdar_ar.campaign_finalize"
+#: The stages of a job after ``run_job`` (worker/orchestration/tasks.py).
+TASK_FETCH = "osdar_ar.fetch"
+TASK_PREPARE = "osdar_ar.prepare"
+TASK_AUGMENT_CHUNK = "osdar_ar.augment_chunk"
+TASK_FINISH = "osdar_ar.finish"
+TASK_EVALUATE = "osdar_ar.evaluate"
+TASK_PACKAGE = "osdar_ar.package"
+TASK_PUBLISH = "osdar_ar.publish"
 #: A campaign finalize asked for and not done within this long is asked for again.
 FINALIZE_RETRY_S = 30.0
 #: Broker priorities of a job's first message (``run_job``). On Redis a lower number is
@@ -301,8 +309,15 @@ __all__ = [
     "FINALIZE_RETRY_S",
     "PRIORITY_CAMPAIGN_VARIANT",
     "PRIORITY_JOB",
+    "TASK_AUGMENT_CHUNK",
+    "TASK_EVALUATE",
     "TASK_EXPAND_CAMPAIGN",
+    "TASK_FETCH",
     "TASK_FINALIZE_CAMPAIGN",
+    "TASK_FINISH",
+    "TASK_PACKAGE",
+    "TASK_PREPARE",
+    "TASK_PUBLISH",
     "TASK_RUN_JOB",
     "broker_overview",
     "enqueue_job",

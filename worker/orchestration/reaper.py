@@ -44,6 +44,12 @@ handed to the broker is ``jobs.broker_seen_at``).
   is not a case of its own any more: its process is killed and its lease expires.
 - **PENDING**: the API committed the row but could not send the message
   (``worker.orchestration.queue.requeue_pending``).
+- **finish lost**: a RUNNING job whose attempt's chunks are all done (``chunk_join.py``)
+  but whose ``finish`` has not started, with no lease and no row update for
+  ``reaper_orphan_grace_s``: the chunk that completed the last one died before it claimed
+  the finish or before its send reached the broker. No new attempt: a new finish token is
+  claimed (one conditional update, the row as read) and ``finish`` is sent again; the
+  first message, if it still comes, carries the old token and is refused.
 
 Campaigns: a campaign's variants are jobs like any other, re-queued by the rules above;
 a re-queued variant's new attempt ends in its publish (or failure), which finalizes the
@@ -102,6 +108,7 @@ from osdar_platform.models import (
     utcnow,
 )
 from osdar_platform.settings import Settings
+from worker.orchestration import chunk_join
 from worker.orchestration.broker_sentinel import (
     SENTINEL_KEY,
     BrokerEpoch,
@@ -137,6 +144,8 @@ class ReapReport:
     requeued: list[str] = field(default_factory=list)
     failed: list[str] = field(default_factory=list)
     pending_sent: list[str] = field(default_factory=list)
+    #: jobs whose lost ``finish`` was sent again (chunk_join.py)
+    finish_resent: list[str] = field(default_factory=list)
     #: campaigns whose expansion or finalize was sent again (nudge_campaign)
     campaigns_nudged: list[str] = field(default_factory=list)
     reasons: dict[str, str] = field(default_factory=dict)
@@ -179,6 +188,9 @@ class JobView:
     broker_seen_at: datetime | None = None
     broker_run_id: str | None = None
     leases: tuple[LeaseView, ...] = ()
+    attempt: int = 0
+    #: every chunk of the attempt done and its finish not started (chunk_join.py)
+    joined: bool = False
 
 
 def decide(
@@ -220,6 +232,13 @@ def decide(
     if stale_rule and running and job.updated_at < stale_cut:
         return STALE_REASON.format(s=stale_after_s(settings))
     return None
+
+
+def finish_lost(job: JobView, now: datetime, settings: Settings) -> bool:
+    """Whether ``job`` waits for a ``finish`` that nobody will run (module docstring)."""
+    quiet = now - timedelta(seconds=settings.reaper_orphan_grace_s)
+    running = job.state == JobState.RUNNING
+    return running and job.joined and not job.leases and job.updated_at < quiet
 
 
 # ---------------------------------------------------------------------------- reap
@@ -311,6 +330,22 @@ def _requeue(
     return "requeued"
 
 
+def _resend_finish(sessions: Any, app: Any, job: JobView) -> bool:
+    """Claim a new finish token for ``job`` (its row as read) and send ``finish``."""
+    with sessions() as s, s.begin():
+        token = chunk_join.claim_in(s, job.id, job.attempt, resend=True,
+                                    seen_updated=job.updated_at)  # fmt: skip
+    if token is None:
+        return False
+    try:
+        chunk_join.send_finish(app, job.id, job.attempt, token)
+    except Exception as exc:  # the row moved: the next sweep after the grace tries again
+        log.warning("reaper: finish of job %s could not be sent: %s", job.id, exc)
+        return False
+    log.warning("reaper: job %s: its chunks were done, finish sent again", job.id)
+    return True
+
+
 def _stamp(sessions: Any, ids: list[str], epoch: BrokerEpoch) -> None:
     """Jobs just sent (QUEUED) were sent under this sentinel: not "before it" next sweep."""
     with sessions.begin() as s:
@@ -331,9 +366,10 @@ def _active_jobs(s: Any, now: datetime, epoch: BrokerEpoch | None, settings: Set
         where.append(and_(Job.state == JobState.QUEUED, Job.updated_at < cut, not_ours))
     rows = s.execute(
         select(
-            Job.id, Job.state, Job.attempt, Job.updated_at, Job.broker_seen_at, Job.broker_run_id
+            Job.id, Job.state, Job.attempt, Job.updated_at, Job.broker_seen_at, Job.broker_run_id,
+            Job.chunks_total, Job.chunks_done, Job.finish_started_at,
         ).where(or_(*where))
-    ).all()
+    ).all()  # fmt: skip
     leases: dict[str, list[LeaseView]] = {}
     attempts = {r.id: r.attempt for r in rows}
     if attempts:
@@ -349,6 +385,8 @@ def _active_jobs(s: Any, now: datetime, epoch: BrokerEpoch | None, settings: Set
             r.broker_seen_at,
             r.broker_run_id,
             tuple(leases.get(r.id, ())),
+            r.attempt,
+            r.finish_started_at is None and chunk_join.joined_at(r.chunks_total, r.chunks_done),
         )
         for r in rows
     ]
@@ -386,6 +424,8 @@ def reap(
             why = decide(job, now, report.broker, settings, expire_leases=expire_leases,
                          stale_rule=stale_rule)  # fmt: skip
             if why is None:
+                if finish_lost(job, now, settings) and _resend_finish(sessions, app, job):
+                    report.finish_resent.append(job.id)
                 continue
             out = _requeue(sessions, app, settings, job, why, report.broker)
             if out:
@@ -400,7 +440,8 @@ def reap(
     finally:
         if engine is not None:
             engine.dispose()
-    if report.requeued or report.failed or report.pending_sent or report.campaigns_nudged:
+    acted = report.requeued or report.failed or report.pending_sent or report.finish_resent
+    if acted or report.campaigns_nudged:
         log.warning("reaper: %s", report)
     return report
 
@@ -496,6 +537,7 @@ __all__ = [
     "ReaperThread",
     "broker_epoch",
     "decide",
+    "finish_lost",
     "reap",
     "stale_after_s",
     "start_reaper",

@@ -11,7 +11,9 @@ One job = one recipe (:func:`run_job_inline` reads it top to bottom)::
     package_job      archive: output sequence + metrics.json + report + previews
     publish_job      upload under an attempt-scoped key, then ONE conditional row update
 
-[*] the chunks of one job can run on several workers at once (a Celery chord).
+[*] the chunks of one job can run on several workers at once. Each records its result
+on the job's row; the one that completes the last chunk sends ``finish``, which reads
+the results from there (``chunk_join.py``: the join in our database, not a chord).
 
 Every stage runs inside :func:`_stage`: it holds the stage's lease while it runs (taken,
 renewed by a heartbeat thread, released: ``lease.py``; the reaper re-queues a job whose
@@ -40,6 +42,7 @@ import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -64,7 +67,7 @@ from worker.augmentation.records import (
     read_plan,
 )
 from worker.augmentation.spec import AugmentSpec, MeshFile
-from worker.orchestration import lease, state
+from worker.orchestration import chunk_join, lease, state
 from worker.orchestration.lease import database_unreachable
 from worker.orchestration.shared_results import rpe_plot, sequence_evaluation
 from worker.orchestration.state import (
@@ -237,10 +240,22 @@ def cleanup_attempt(run: JobRun, *, keep: frozenset[str] = frozenset()) -> None:
 
 
 @contextmanager
-def _stage(run: JobRun, name: str, *, count_delivery: bool = True) -> Iterator[None]:
-    """Guard, show, time one stage; map its outcome onto the job (module docstring)."""
+def _stage(
+    run: JobRun,
+    name: str,
+    *,
+    count_delivery: bool = True,
+    admit: Callable[[], bool] | None = None,
+) -> Iterator[None]:
+    """Guard, show, time one stage; map its outcome onto the job (module docstring).
+
+    ``admit``: asked once the lease is held, before anything else; False stops the stage
+    as superseded (a stale duplicate ``finish``: ``chunk_join.admit_finish``).
+    """
     s = run.settings
     with lease.held(run.job_id, run.attempt, name, settings=s):
+        if admit is not None and not admit():
+            raise JobSuperseded(f"job {run.job_id}: {name} of attempt {run.attempt} stale")
         with _outcome(run, name, count_delivery=count_delivery):
             yield
 
@@ -328,11 +343,14 @@ def job_frames(run: JobRun, frame_indices: list[int] | None = None) -> list[int]
 def plan_chunks(
     job_id: str, *, attempt: int | None = None, settings: Settings | None = None
 ) -> list[list[int]]:
-    """The job's frames split into chunks of ``settings.frames_per_chunk``."""
+    """The job's frames split into chunks of ``settings.frames_per_chunk``; their number
+    is recorded for the join before ``finish`` (``chunk_join.plan``)."""
     run = _run(job_id, attempt, settings)
     frames = job_frames(run)
     n = run.settings.frames_per_chunk
-    return [frames[i : i + n] for i in range(0, len(frames), n)]
+    chunks = [frames[i : i + n] for i in range(0, len(frames), n)]
+    chunk_join.plan(run.job_id, run.attempt, len(chunks), settings=run.settings)
+    return chunks
 
 
 # ---------------------------------------------------------------------------- fetch
@@ -497,11 +515,17 @@ def augment_chunk(
     attempt: int | None = None,
     settings: Settings | None = None,
 ) -> dict[str, Any]:
-    """Augment one chunk of frames (any worker); its files and records go to the store.
+    """Augment one chunk of frames (any worker); its files and records go to the store,
+    and the chunk is recorded done on the job's row (``chunk_join.complete_chunk``).
 
-    Returns ``{"index", "frames", "files", "records"}``: store keys, JSON for the chord.
+    Returns ``{"index", "frames", "files", "records"}``: store keys (JSON). A chunk
+    already recorded done (delivered again) returns its record without redoing the work.
     """
     run = _run(job_id, attempt, settings)
+    done = chunk_join.chunk_result(run.job_id, run.attempt, index, settings=run.settings)
+    if done is not None:
+        log.info("job %s attempt %d: chunk %d was done already", job_id, run.attempt, index)
+        return dict(done)
     with _stage(run, f"augment[{index}]"):
         state.set_stage(run.job_id, run.attempt, "augment", settings=run.settings)
         plan = _plan(run)
@@ -529,7 +553,10 @@ def augment_chunk(
         assert result is not None  # a chunk has at least one frame
         run.store.put_bytes(records_key, dump_chunk(result))
         _chunk_done(run, index).write_text("ok")
-        return {"index": index, "frames": list(frames), "files": files_key, "records": records_key}
+        record = {"index": index, "frames": list(frames), "files": files_key,
+                  "records": records_key}  # fmt: skip
+        chunk_join.complete_chunk(run.job_id, run.attempt, index, record, settings=run.settings)
+        return record
 
 
 def _output_folder(run: JobRun) -> Path:
@@ -576,16 +603,30 @@ def _assemble_output(run: JobRun, chunks: list[dict[str, Any]]) -> tuple[Path, d
 
 def finish_job(
     job_id: str,
-    chunks: list[dict[str, Any]],
+    chunks: list[dict[str, Any]] | None = None,
     *,
+    token: str | None = None,
     attempt: int | None = None,
     settings: Settings | None = None,
 ) -> dict[str, Any]:
-    """After every chunk: the complete output sequence and the augmentation metrics."""
+    """After every chunk: the complete output sequence and the augmentation metrics.
+
+    ``chunks``: the chunks' results (default: as recorded on the job's row). ``token``:
+    the finish token the message carries (``chunk_join.claim_finish``); a stale one stops
+    here (:class:`JobSuperseded`) before taking the stage's lease or counting a delivery.
+    """
     run = _run(job_id, attempt, settings)
-    with _stage(run, "finish"):
-        if any(c.get("stopped") for c in chunks):
-            raise JobSuperseded(f"job {job_id}: a chunk stopped the attempt")
+    s = run.settings
+    admit: Callable[[], bool] | None = None
+    if token is not None:
+        if not chunk_join.finish_token_current(run.job_id, run.attempt, token, settings=s):
+            raise JobSuperseded(f"job {job_id}: finish of attempt {run.attempt} stale")
+        admit = partial(chunk_join.admit_finish, run.job_id, run.attempt, token, settings=s)
+    with _stage(run, "finish", admit=admit):
+        if chunks is None:
+            chunks = chunk_join.chunk_results(run.job_id, run.attempt, settings=s)
+        if not chunks:
+            raise JobSuperseded(f"job {job_id}: attempt {run.attempt} has no chunk done")
         index = json.dumps(sorted(chunks, key=lambda c: c["index"])).encode()
         run.store.put_bytes(f"{run.prefix}chunks/index.json", index)
         _, metrics = _assemble_output(run, chunks)
@@ -742,11 +783,12 @@ def run_job_inline(job_id: str, *, settings: Settings | None = None) -> JobState
         kw: dict[str, Any] = {"attempt": attempt, "settings": settings}
         fetch_sequence(job_id, **kw)
         prepare_for_job(job_id, **kw)
-        chunks = [
+        for i, frames in enumerate(plan_chunks(job_id, **kw)):
             augment_chunk(job_id, i, frames, **kw)
-            for i, frames in enumerate(plan_chunks(job_id, **kw))
-        ]
-        finish_job(job_id, chunks, **kw)
+        token = chunk_join.claim_finish(job_id, attempt, settings=settings)
+        if token is None:  # the attempt was superseded meanwhile
+            raise JobSuperseded(f"job {job_id}: attempt {attempt} has nothing to finish")
+        finish_job(job_id, token=token, **kw)
         evaluate_job(job_id, **kw)
         archive = package_job(job_id, **kw)
         publish_job(job_id, archive, **kw)

@@ -115,6 +115,12 @@ def mark_running(job_id: str, *, settings: Settings, max_deliveries: int | None 
                 started_at=func.coalesce(Job.started_at, now),
                 updated_at=now,
                 broker_seen_at=now,  # its message was delivered just now
+                # the join of the new attempt's chunks starts empty (chunk_join.py)
+                chunks_total=0,
+                chunks_done=None,
+                finish_token=None,
+                finish_sent_at=None,
+                finish_started_at=None,
             ),
         )
         if not moved:
@@ -218,24 +224,34 @@ def add_progress(job_id: str, attempt: int, frames: int, *, settings: Settings) 
         )
 
 
+def _lock_attempt(s: Any, job_id: str, attempt: int) -> bool:
+    """Touch the attempt's row to lock it for the rest of the transaction: a row lock on
+    PostgreSQL, the write lock on SQLite (whose driver starts a transaction at the first
+    write, so a read before it would not be protected); False if the attempt is gone."""
+    touch = update(Job).where(Job.id == job_id, Job.attempt == attempt)
+    return bool(updated_rows(s, touch.values(updated_at=Job.updated_at)))
+
+
 def record_timing(job_id: str, attempt: int, stage: str, seconds: float, *,
                   settings: Settings) -> None:  # fmt: skip
-    """Add ``stage: seconds`` to the job's timings (one stage runs at a time per job)."""
+    """Add ``stage: seconds`` to the job's timings (chunks of one job running at once
+    add theirs under the row's lock: neither is lost)."""
     with session_scope(settings) as s:
-        job = s.get(Job, job_id, with_for_update=not settings.is_sqlite)
-        if job is None or job.attempt != attempt:
+        if not _lock_attempt(s, job_id, attempt):
             return
-        job.timings = {**(job.timings or {}), stage: round(float(seconds), 3)}
+        timings = s.scalar(select(Job.timings).where(Job.id == job_id)) or {}
+        timings = {**timings, stage: round(float(seconds), 3)}
+        s.execute(update(Job).where(Job.id == job_id).values(timings=timings))
 
 
 def merge_metrics(job_id: str, attempt: int, metrics: dict[str, Any], *,
                   settings: Settings) -> None:  # fmt: skip
     """Merge top-level keys into the job's metrics (evaluate, augmentation)."""
     with session_scope(settings) as s:
-        job = s.get(Job, job_id, with_for_update=not settings.is_sqlite)
-        if job is None or job.attempt != attempt:
+        if not _lock_attempt(s, job_id, attempt):
             return
-        job.metrics = {**(job.metrics or {}), **metrics}
+        merged = {**(s.scalar(select(Job.metrics).where(Job.id == job_id)) or {}), **metrics}
+        s.execute(update(Job).where(Job.id == job_id).values(metrics=merged))
 
 
 def get_metrics(job_id: str, *, settings: Settings) -> dict[str, Any]:

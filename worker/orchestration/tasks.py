@@ -1,17 +1,22 @@
 """Celery tasks: thin wrappers over the plain functions of ``worker/orchestration/runner.py``.
 
 Tasks get ids (job id, attempt), never objects. ``osdar_ar.run_job`` is what the API
-sends (task id = job id); it starts an attempt and launches the job's stages as one
-workflow::
+sends (task id = job id); it starts an attempt and launches the job's stages::
 
-    fetch -> prepare -> chord(augment_chunk x N) -> finish -> evaluate -> package -> publish
+    fetch -> prepare -> group(augment_chunk x N)
+    the chunk that completes the last one: finish -> evaluate -> package -> publish
+
+The chunks are joined in our database, not by a Celery chord (whose end the database
+result backend finds by polling once a second): each chunk records its result on the
+job's row, and the one chunk task that claims the finish token sends ``finish`` and the
+stages after it (``chunk_join.py``; the reaper sends ``finish`` again if that send was
+lost). No task stores a Celery result.
 
 A stage that stops the job (cancelled, failed, superseded by a newer attempt) raises
 ``Ignore``: the message is acknowledged and the rest of the workflow is not sent. The job
-row already says why. Chunk tasks return a "stopped" marker instead, so that the chord
-always completes and its ``finish`` sees the stop at its own checkpoint. A stage that
-could not reach the database is rejected with ``requeue``: its message goes back to the
-broker and the stage runs again (``run_job`` holds a lease while it sends the workflow).
+row already says why. A stage that could not reach the database is rejected with
+``requeue``: its message goes back to the broker and the stage runs again (``run_job``
+holds a lease while it sends the workflow).
 
 Campaigns (worker/campaign/service_expand.py, service_finalize.py): ``osdar_ar.
 campaign_expand`` prepares a campaign's sequences, expands it and makes its variant jobs;
@@ -26,26 +31,30 @@ import time
 from collections.abc import Callable
 from typing import Any, NoReturn, ParamSpec, TypeVar
 
-from celery import Task, chain, chord, shared_task
+from celery import Task, chain, group, shared_task
 from celery.exceptions import Ignore, Reject
 
 from osdar_platform.settings import get_settings
 from worker.campaign.service_expand import expand_campaign_stage
 from worker.campaign.service_finalize import finalize_after_job, finalize_campaign
-from worker.orchestration import lease, runner, state
+from worker.orchestration import chunk_join, lease, runner, state
 from worker.orchestration.lease import database_unreachable
-from worker.orchestration.queue import TASK_EXPAND_CAMPAIGN, TASK_FINALIZE_CAMPAIGN, TASK_RUN_JOB
+from worker.orchestration.queue import (
+    TASK_AUGMENT_CHUNK,
+    TASK_EVALUATE,
+    TASK_EXPAND_CAMPAIGN,
+    TASK_FETCH,
+    TASK_FINALIZE_CAMPAIGN,
+    TASK_FINISH,
+    TASK_PACKAGE,
+    TASK_PREPARE,
+    TASK_PUBLISH,
+    TASK_RUN_JOB,
+)
 from worker.orchestration.state import JobCancelled, JobFailed, JobStop
 
 log = logging.getLogger(__name__)
 
-TASK_FETCH = "osdar_ar.fetch"
-TASK_PREPARE = "osdar_ar.prepare"
-TASK_AUGMENT_CHUNK = "osdar_ar.augment_chunk"
-TASK_FINISH = "osdar_ar.finish"
-TASK_EVALUATE = "osdar_ar.evaluate"
-TASK_PACKAGE = "osdar_ar.package"
-TASK_PUBLISH = "osdar_ar.publish"
 TASK_NAMES = (
     TASK_RUN_JOB,
     TASK_FETCH,
@@ -105,27 +114,16 @@ def _after_job(job_id: str) -> None:
 
 
 def workflow(app: Any, job_id: str, attempt: int, chunks: list[list[int]]) -> Any:
-    """The stages of one attempt as a Celery canvas (module docstring)."""
+    """The stages of one attempt up to its chunks, as a Celery canvas: the chunks (every
+    job has at least one) are sent together when ``prepare`` completes; the rest comes
+    from the chunk that completes the last one (module docstring)."""
 
-    def step(name: str, *args: Any, immutable: bool = True) -> Any:
-        return app.signature(name, args=args, immutable=immutable)
+    def step(name: str, *args: Any) -> Any:
+        return app.signature(name, args=args, immutable=True)
 
-    stages = [step(TASK_FETCH, job_id, attempt), step(TASK_PREPARE, job_id, attempt)]
-    # the frames in parallel (every job has at least one chunk), then finish
-    header = [step(TASK_AUGMENT_CHUNK, job_id, attempt, i, f) for i, f in enumerate(chunks)]
-    finish_step = step(TASK_FINISH, job_id, attempt, immutable=False)
-    if len(header) == 1:
-        # one chunk: a plain link. A chord on the database result backend is finished by
-        # celery.chord_unlock polling once a second: ~1 s of every short job's latency
-        stages += [header[0], finish_step]
-    else:
-        stages.append(chord(header, finish_step))
-    stages += [
-        step(TASK_EVALUATE, job_id, attempt),
-        step(TASK_PACKAGE, job_id, attempt),
-        step(TASK_PUBLISH, job_id, attempt, immutable=False),  # gets the archive path
-    ]
-    return chain(*stages)
+    parts = [step(TASK_AUGMENT_CHUNK, job_id, attempt, i, f) for i, f in enumerate(chunks)]
+    last = parts[0] if len(parts) == 1 else group(parts)
+    return chain(step(TASK_FETCH, job_id, attempt), step(TASK_PREPARE, job_id, attempt), last)
 
 
 @shared_task(name=TASK_RUN_JOB, bind=True, base=JobTask)
@@ -158,25 +156,21 @@ def prepare(job_id: str, attempt: int) -> str:
     return str(_stage(runner.prepare_for_job, job_id, attempt=attempt).key)
 
 
-@shared_task(name=TASK_AUGMENT_CHUNK, base=JobTask, ignore_result=False)
-def augment_chunk(job_id: str, attempt: int, index: int, frames: list[int]) -> dict[str, Any]:
-    try:
-        return runner.augment_chunk(job_id, index, frames, attempt=attempt)
-    except JobStop as stop:  # never raise in a chord header: the chord must complete
-        return {"index": index, "stopped": True, "reason": str(stop)}
-    except Exception as exc:
-        if database_unreachable(exc):
-            _give_back(exc)
-        raise
+@shared_task(name=TASK_AUGMENT_CHUNK, bind=True, base=JobTask)
+def augment_chunk(
+    self: Task[Any, Any], job_id: str, attempt: int, index: int, frames: list[int]
+) -> None:
+    """One chunk, recorded done; the chunk that completes the last one sends ``finish``."""
+    _stage(runner.augment_chunk, job_id, index, frames, attempt=attempt)
+    token = _stage(chunk_join.claim_finish, job_id, attempt, settings=get_settings())
+    if token is not None:
+        chunk_join.send_finish(self.app, job_id, attempt, token)
 
 
 @shared_task(name=TASK_FINISH, base=JobTask)
-def finish(
-    chunks: list[dict[str, Any]] | dict[str, Any], job_id: str, attempt: int
-) -> dict[str, Any]:
-    """After the chord of chunks (their list), or after the one chunk (its dict)."""
-    done = [chunks] if isinstance(chunks, dict) else chunks
-    return _stage(runner.finish_job, job_id, done, attempt=attempt)
+def finish(job_id: str, attempt: int, token: str) -> dict[str, Any]:
+    """After every chunk (the message of the chunk that claimed ``token``)."""
+    return _stage(runner.finish_job, job_id, token=token, attempt=attempt)
 
 
 @shared_task(name=TASK_EVALUATE, base=JobTask)
