@@ -196,6 +196,8 @@ class Sigmas:
     odo_pair_t_b: tuple[float, float] = (0.0002, 0.0002)
     #: Estimate the INS wander from the whole solution (:func:`wander_factors`).
     estimate_wander: bool = True
+    #: Estimate the rotation smoothness per axis from the solution (:func:`motion_factors`).
+    estimate_motion: bool = True
     #: Variance factors from redundancy numbers (:func:`variance_factors`).
     redundancy_vce: bool = True
     att_bias: float = 1.0 * DEG
@@ -468,7 +470,8 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
         a_base = np.einsum("nji,nj->ni", R[1:-1], a_world)
         out.append((a_base / np.asarray(sig.acc)).ravel())
         w = _log_rotation(np.swapaxes(R[:-1], 1, 2) @ R[1:])
-        out.append(((w[1:] - w[:-1]) / np.asarray(sig.rot_acc)).ravel())
+        rot_acc = np.asarray(sig.rot_acc) * pb.s("rot_acc")
+        out.append(((w[1:] - w[:-1]) / rot_acc).ravel())
     if pb.n >= 4 and sig.jerk is not None:
         c = pb.diff3
         j_world = c[:, :1] * p[:-3] + c[:, 1:2] * p[1:-2] + c[:, 2:3] * p[2:-1] + c[:, 3:] * p[3:]
@@ -1391,6 +1394,15 @@ MIN_ROWS_FOR_SCALE = 6
 def measurement_blocks(pb: Problem, x: F64) -> dict[str, F64]:
     """The normalised residuals of each measurement block, (rows, components) each."""
     r = residuals(x, pb)
+    out, i = {}, 0
+    for name, rows, comps in _block_sizes(pb):
+        out[name] = r[i : i + rows * comps].reshape(rows, comps)
+        i += rows * comps
+    return out
+
+
+def _block_sizes(pb: Problem) -> list[tuple[str, int, int]]:
+    """(name, rows, components) of each measurement block, in the residuals' order."""
     n, m = pb.n, len(pb.ins_k)
     sizes: list[tuple[str, int, int]] = [("odo_t", n - 1, 3), ("odo_r", n - 1, 3)]
     if m:
@@ -1403,11 +1415,7 @@ def measurement_blocks(pb: Problem, x: F64) -> dict[str, F64]:
         sizes.append(("ins_v", len(pb.vel["k"]), 1))
     if pb.odo_pairs is not None:
         sizes.append(("odo_pair", len(pb.odo_pairs["k"]), 2))
-    out, i = {}, 0
-    for name, rows, comps in sizes:
-        out[name] = r[i : i + rows * comps].reshape(rows, comps)
-        i += rows * comps
-    return out
+    return sizes
 
 
 def redundancy(pb: Problem, x: F64) -> tuple[F64, F64, F64] | None:
@@ -1480,22 +1488,10 @@ MIN_BLOCK_REDUNDANCY = 1.0
 
 def _block_offsets(pb: Problem) -> dict[str, int]:
     """First residual row of each measurement block (:func:`measurement_blocks`' order)."""
-    n, m = pb.n, len(pb.ins_k)
-    sizes: list[tuple[str, int]] = [("odo_t", 3 * (n - 1)), ("odo_r", 3 * (n - 1))]
-    if m:
-        sizes += [("ins_p", 3 * m), ("ins_r", 3 * m)]
-    if pb.rail is not None:
-        sizes += [("rail_lat", n), ("rail_vert", n), ("rail_r", 3 * n)]
-    if pb.ground is not None:
-        sizes.append(("ground", 3 * len(pb.ground["k"])))
-    if pb.vel is not None:
-        sizes.append(("ins_v", len(pb.vel["k"])))
-    if pb.odo_pairs is not None:
-        sizes.append(("odo_pair", 2 * len(pb.odo_pairs["k"])))
     out, i = {}, 0
-    for name, size in sizes:
+    for name, rows, comps in _block_sizes(pb):
         out[name] = i
-        i += size
+        i += rows * comps
     return out
 
 
@@ -1514,16 +1510,33 @@ def _rescale_and_solve(pb: Problem, x: F64, health: Health) -> F64:
         x = solve(pb, x, max_iter=4)
     for name, f in pb.scale.items():
         health.metrics[f"fused_variance_factor_{name}"] = float(np.max(f))
-    if pb.sig.estimate_wander and pb.n_knots >= WANDER_MIN_KNOTS:
-        for _ in range(WANDER_ROUNDS):
-            f = wander_factors(pb, x)
-            if f is None or np.allclose(f, 1.0, rtol=0.1):
-                break
-            _set_bias_step(pb, pb.bias_step_sigma * f)
-            x = solve(pb, x, max_iter=4)
+    wander = pb.sig.estimate_wander and pb.n_knots >= WANDER_MIN_KNOTS
+    motion = pb.sig.estimate_motion and pb.n >= 3
+    for _ in range(WANDER_ROUNDS if (wander or motion) else 0):
+        red = redundancy(pb, x)
+        if red is None:
+            break
+        f_wander = wander_factors(pb, x, red) if wander else None
+        f_motion = motion_factors(pb, red) if motion else None
+        changed = False
+        if f_wander is not None and not np.allclose(f_wander, 1.0, rtol=0.1):
+            _set_bias_step(pb, pb.bias_step_sigma * f_wander)
+            changed = True
+        if f_motion is not None and not np.allclose(f_motion, 1.0, rtol=0.1):
+            total = np.clip(pb.s("rot_acc") * f_motion, *MOTION_FACTOR_TOTAL)
+            pb.scale["rot_acc"] = total
+            changed = True
+        if not changed:
+            break
+        x = solve(pb, x, max_iter=4)
+    if wander:
         for name, q in zip(WANDER_NAMES, pb.bias_step_sigma, strict=True):
             unit = np.degrees(q) if name in WANDER_NAMES[:3] else q
             health.metrics[f"fused_ins_wander_estimated_{name}"] = float(unit)
+    if motion:
+        sig_r = np.asarray(pb.sig.rot_acc) * np.broadcast_to(pb.s("rot_acc"), (3,))
+        for axis, q in zip(("roll", "pitch", "heading"), sig_r, strict=True):
+            health.metrics[f"fused_rotation_acceleration_{axis}_mdeg"] = float(1000 * np.degrees(q))
     return x
 
 
@@ -1563,7 +1576,7 @@ WANDER_FLOOR_R = 0.001 * DEG
 WANDER_FLOOR_P = 0.002
 
 
-def wander_factors(pb: Problem, x: F64) -> F64 | None:
+def wander_factors(pb: Problem, x: F64, red: tuple[F64, F64, F64] | None = None) -> F64 | None:
     """(6,) factors on the INS wander sigmas (the bias-step prior), by variance-component
     estimation with redundancy numbers (Foerstner): for the prior's rows of component c,
     ``f_c^2 = sum(w r^2) / sum(1 - h)`` with r the normalised residuals, w the Huber
@@ -1574,9 +1587,10 @@ def wander_factors(pb: Problem, x: F64) -> F64 | None:
     a second where it had none). Here every source weighs in (odometry steps and pairs,
     ground pairs, rails, INS positions and attitude): the bias steps the solution needs,
     against the freedom the prior gave them, say how much the INS wandered. None when the
-    normal matrix cannot be inverted or the prior has no redundancy.
+    normal matrix cannot be inverted or the prior has no redundancy. ``red``: the
+    redundancy numbers at ``x`` when already computed.
     """
-    red = redundancy(pb, x)
+    red = red if red is not None else redundancy(pb, x)
     if red is None:
         return None
     r, w, one_minus_h = red
@@ -1589,6 +1603,43 @@ def wander_factors(pb: Problem, x: F64) -> F64 | None:
     f = np.where(den > WANDER_MIN_REDUNDANCY, np.sqrt(num / np.maximum(den, 1e-12)), 1.0)
     f[~np.asarray(WANDER_ESTIMATED)] = 1.0
     return np.clip(f, *WANDER_FACTOR_BOUNDS)
+
+
+#: Bounds of the rotation smoothness prior's total factor (on ``Sigmas.rot_acc``): a
+#: sequence's own motion decides how smooth its rotations are, within 0.1x (2 mdeg per
+#: frame^2 at the default: a clothoid's yaw acceleration at 20 m/s is about 13) and 3x.
+MOTION_FACTOR_TOTAL = (0.1, 3.0)
+#: Least redundancy of a rotation axis' smoothness rows to estimate its factor.
+MOTION_MIN_REDUNDANCY = 2.0
+
+
+def _smoothness_offset(pb: Problem) -> int:
+    """First residual row of the rotation smoothness prior (after the measurement blocks
+    and the positions' second differences)."""
+    return sum(rows * comps for _, rows, comps in _block_sizes(pb)) + 3 * (pb.n - 2)
+
+
+def motion_factors(pb: Problem, red: tuple[F64, F64, F64]) -> F64 | None:
+    """(3,) factors on the rotation smoothness sigmas (roll, pitch, heading), by the same
+    variance-component estimate as :func:`wander_factors`, on the rows of the second
+    differences of the frame-to-frame rotations.
+
+    How smoothly a train turns is the sequence's own: a straight or constant curve has
+    almost no yaw acceleration, a clothoid entered at speed has a steady one, a coach's
+    body sways in roll and pitch on its suspension. A fixed prior either leaves the
+    odometry's per-frame heading noise in the poses (jitter of the placed object) or
+    flattens a real transition; estimated from the solution, each axis takes the
+    smoothness its residuals show against the freedom the prior gives them. None when no
+    axis has enough redundancy.
+    """
+    r, w, one_minus_h = red
+    i0 = _smoothness_offset(pb)
+    rows = np.arange(i0, i0 + 3 * (pb.n - 2))
+    rb = (w[rows] * r[rows] ** 2).reshape(-1, 3)
+    num, den = rb.sum(axis=0), one_minus_h[rows].reshape(-1, 3).sum(axis=0)
+    if not np.any(den > MOTION_MIN_REDUNDANCY):
+        return None
+    return np.where(den > MOTION_MIN_REDUNDANCY, np.sqrt(num / np.maximum(den, 1e-12)), 1.0)
 
 
 def information(pb: Problem, x: F64) -> PoseInformation:
