@@ -14,9 +14,10 @@
    edges stay consistent). With ``match_sharpness`` (default) the Gaussian is the
    frame's own: the blur of the real step edges in the ROI grown by ``NOISE_WINDOW_PX``
    (object excluded; :mod:`renderer.frame_blur`, from the edges across the motion
-   direction, so the motion blur below is not counted twice), less the anti-aliased
-   coverage's own pixel box (``PIXEL_BOX_VAR_PX2``), and never below the defocus at the
-   object's distance (the real edges around may be farther). Without it, or with too
+   direction, so the motion blur below is not counted twice), less the render's own edge
+   spread (``ObjectRender.edge_var_px2``: a pixel's box and the supersampled lens
+   resampling, 1/12 to 1/6 px^2), and never below the defocus at the object's
+   distance (the real edges around may be farther). Without it, or with too
    few edges, the lens model: a Gaussian with sigma = sqrt(sigma_optics^2 + sigma_defocus^2)
    where sigma_optics = ``OPTICS_SIGMA_PX`` x image scale (a real lens and demosaicing
    never give a one-pixel-sharp edge) and sigma_defocus = fx x ``APERTURE_M`` /
@@ -68,7 +69,6 @@ LAB_STD_BLEND = 0.5
 OPTICS_SIGMA_PX = 0.6  # at the sensor's full resolution
 APERTURE_M = 0.004  # effective aperture diameter of the front cameras (assumed)
 FEATHER_SIGMA_PX = 0.5
-PIXEL_BOX_VAR_PX2 = 1.0 / 12.0  # the anti-aliased coverage's 1-px box
 NOISE_WINDOW_PX = 48
 _CHANGE_EPS = 1.0 / 4096.0
 _SRGB_LUT = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
@@ -118,11 +118,12 @@ def frame_blur(
 
 def gaussian_sigma_px(render: ObjectRender, frame_sigma: float | None) -> float:
     """The Gaussian the object layer gets (module doc, steps 2 and 3): the frame's own
-    blur less the coverage's pixel box (1/12 px^2), never below the lens's defocus at the
-    object's distance; without a frame estimate the lens model with the feather."""
+    blur less the render's own edge spread (``render.edge_var_px2``, px^2), never below
+    the lens's defocus at the object's distance; without a frame estimate the lens model
+    with the feather."""
     if frame_sigma is None:
         return float(np.hypot(blur_sigma_px(render), FEATHER_SIGMA_PX))
-    own = float(np.sqrt(max(frame_sigma**2 - PIXEL_BOX_VAR_PX2, 0.0)))
+    own = float(np.sqrt(max(frame_sigma**2 - render.edge_var_px2, 0.0)))
     return max(own, defocus_sigma_px(render))
 
 

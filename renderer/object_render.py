@@ -28,10 +28,16 @@ Per call, for the object at ``T_world_obj`` seen from the vehicle pose ``T_world
      the object); where a proxy is the nearest surface it records "occluded" and the
      fraction of sun light the object blocks there (percentage-closer filtering of the
      shadow map).
-4. **Resolve and distort.** The supersamples are averaged (premultiplied by coverage),
-   then ``cv2.remap`` with the camera's own pinhole->distorted maps (restricted to the ROI
-   and shifted to the sub-window) gives the layers in the distorted image, so the object
-   lands where the real lens puts it.
+4. **Distort, then resolve.** The layers (premultiplied by coverage) are resampled
+   bilinearly from the supersampled pinhole onto an ``s`` x ``s`` sub-grid of each
+   distorted ROI pixel, at the positions the camera's own pinhole<-distorted maps give
+   (``RenderSetup.map_x/map_y``, interpolated bilinearly between pixel centres as the
+   map itself is between its nodes), then each pixel's ``s`` x ``s`` sub-samples are
+   averaged: the object lands where the real lens puts it and its edge is a pixel's box
+   (variance 1/12 px^2) plus the bilinear resampling's 1/(6 s^2) at the sub-sample pitch,
+   ``(s^2 + 1) / (12 s^2)`` in all (``ObjectRender.edge_var_px2``). Resampling the
+   averaged pinhole pixels instead (distort after resolving) adds the bilinear's 1/6 px^2
+   at the pixel pitch: a 0.5 px edge instead of 0.30 px at s = 4.
 
 Anti-aliasing (``antialias``): ``"none"`` (s = 1), ``"ssaa<s>"`` (fixed integer s), or
 ``"auto"``: the largest s <= ``AUTO_SSAA_MAX`` with s^2 x (sub-window pixels) <=
@@ -69,6 +75,7 @@ _BOUNDARY_SAMPLES = 96  # per edge, when mapping the ROI rectangle through the d
 _PROXY_ORIGIN_GRID = 10.0  # m
 TEXTURE_ANISOTROPY = 1.0  # llvmpipe: 8x costs 3.4x the render (0.42 vs 0.12 s); SSAA averages
 _GL_SRGB8_ALPHA8 = 0x8C43
+_REMAP_GRID = 256.0  # sub-pixel map positions are multiples of 1 / _REMAP_GRID
 
 
 # ---------------------------------------------------------------------------- shaders
@@ -307,6 +314,9 @@ class ObjectRender:
         forward (base +x); composite's motion blur uses it. [addition to the contract]
     focal_px : the camera's fx at this image's resolution. [addition]
     pixel_scale : the camera's scale relative to the sensor's real resolution. [addition]
+    edge_var_px2 : the render's own edge spread (variance of its line spread function,
+        px^2): ``(s^2 + 1) / (12 s^2)`` for ``s`` x ``s`` supersamples (:func:`edge_var_px2`);
+        1/12, a pixel's box, for an exactly integrated coverage. [addition]
     """
 
     roi: tuple[int, int, int, int] | None
@@ -321,6 +331,7 @@ class ObjectRender:
     motion_uv_per_m: F64 = field(default_factory=lambda: np.zeros(2))
     focal_px: float = 0.0
     pixel_scale: float = 1.0
+    edge_var_px2: float = 1.0 / 12.0
 
 
 @dataclass
@@ -371,6 +382,55 @@ class _Upload:
                 o.release()
         for sf in self.surfaces:
             sf.release()
+
+
+def edge_var_px2(s: int) -> float:
+    """Variance (px^2) of the line spread of a render with ``s`` x ``s`` supersamples: the
+    mean of ``s`` point samples across a pixel, ``(s^2 - 1) / (12 s^2)``, plus the
+    bilinear resampling between samples ``1 / s`` px apart, ``1 / (6 s^2)`` on average over
+    the edge's phase."""
+    return float((s * s + 1) / (12.0 * s * s))
+
+
+def subpixel_map(
+    m: NDArray[np.float32], roi: tuple[int, int, int, int], s: int
+) -> tuple[F64, NDArray[np.bool_]]:
+    """A per-pixel map (H, W) read at the centres of each ROI pixel's ``s`` x ``s``
+    sub-pixels: (s h, s w) values (bilinear between pixel centres, float64; linear
+    extrapolation across the image border) and (s h, s w) "invalid" flags (a sub-pixel
+    next to a negative map value). Sub-pixel ``k`` of pixel ``u`` sits at
+    ``u - 0.5 + (k + 0.5) / s``."""
+    u0, v0, u1, v1 = roi
+    H, W = m.shape
+    a0, b0, a1, b1 = max(u0 - 1, 0), max(v0 - 1, 0), min(u1 + 1, W), min(v1 + 1, H)
+    crop = m[b0:b1, a0:a1].astype(np.float64)
+    pad = ((1 - (v0 - b0), 1 - (b1 - v1)), (1 - (u0 - a0), 1 - (a1 - u1)))
+    if any(p for pp in pad for p in pp):
+        bad = np.pad(crop < 0, pad, mode="edge")
+        crop = np.pad(crop, pad, mode="reflect", reflect_type="odd")
+    else:
+        bad = crop < 0
+    # crop row / column 0 is pixel v0 - 1 / u0 - 1
+    k = (np.arange(s) + 0.5) / s - 0.5
+
+    def axis(n: int) -> tuple[NDArray[np.int64], F64]:
+        t = (np.arange(n)[:, None] + k[None]).ravel() + 1.0
+        i = np.minimum(np.floor(t).astype(np.int64), n)
+        return i, t - i
+
+    iv, fv = axis(v1 - v0)
+    iu, fu = axis(u1 - u0)
+    rows = crop[iv] * (1.0 - fv)[:, None] + crop[iv + 1] * fv[:, None]
+    out = rows[:, iu] * (1.0 - fu)[None] + rows[:, iu + 1] * fu[None]
+    b_rows = bad[iv] | (bad[iv + 1] & (fv > 0)[:, None])
+    b_out = b_rows[:, iu] | (b_rows[:, iu + 1] & (fu > 0)[None])
+    return out, b_out
+
+
+def _exact_f32(x: F64) -> F32:
+    """Positions on a 1/256 px grid, exact in float32 below 65536 px: the fraction (and so
+    cv2.remap's 1/32 px interpolation step) does not depend on the ROI's offset."""
+    return (np.round(x * _REMAP_GRID) / _REMAP_GRID).astype(np.float32)
 
 
 def vertex_normals(vertices: F64, faces: NDArray[np.int64]) -> F64:
@@ -987,7 +1047,8 @@ class ObjectRenderer:
         distance: float,
         motion: F64,
     ) -> ObjectRender:
-        """Supersamples -> pinhole pixels -> distorted ROI layers."""
+        """Supersampled pinhole layers -> distorted sub-pixels -> distorted ROI layers
+        (module docstring, step 4)."""
         obj = col[..., 3]
         vis = obj * (1.0 - aux[..., 1])  # covered by the object and not by a proxy
         layers = np.empty((*col.shape[:2], 8), np.float32)
@@ -997,13 +1058,17 @@ class ObjectRenderer:
         np.subtract(1.0, vis, out=layers[..., 6])
         np.multiply(aux[..., 2], layers[..., 6], out=layers[..., 5])
         layers[..., 7] = obj
-        if s > 1:  # box average of the s x s supersamples (exact for integer factors)
-            h, w = col.shape[0] // s, col.shape[1] // s
-            layers = cv2.resize(layers, (w, h), interpolation=cv2.INTER_AREA)
         u0, v0, u1, v1 = roi
-        mx = self.setup.map_x[v0:v1, u0:u1] - np.float32(p0[0])
-        my = self.setup.map_y[v0:v1, u0:u1] - np.float32(p0[1])
-        bad = (self.setup.map_x[v0:v1, u0:u1] < 0) | (self.setup.map_y[v0:v1, u0:u1] < 0)
+        if s == 1:
+            mx = self.setup.map_x[v0:v1, u0:u1] - np.float32(p0[0])
+            my = self.setup.map_y[v0:v1, u0:u1] - np.float32(p0[1])
+            bad = (self.setup.map_x[v0:v1, u0:u1] < 0) | (self.setup.map_y[v0:v1, u0:u1] < 0)
+        else:  # sub-pixel positions in the supersampled pinhole (pixel centres at integers)
+            sx, bad_x = subpixel_map(self.setup.map_x, roi, s)
+            sy, bad_y = subpixel_map(self.setup.map_y, roi, s)
+            mx = _exact_f32(s * (sx - p0[0] + 0.5) - 0.5)
+            my = _exact_f32(s * (sy - p0[1] + 0.5) - 0.5)
+            bad = bad_x | bad_y
         if np.any(bad):
             mx = np.where(bad, np.float32(-1e4), mx)
             my = np.where(bad, np.float32(-1e4), my)
@@ -1015,6 +1080,8 @@ class ObjectRenderer:
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=0,
         )
+        if s > 1:  # box average of each pixel's s x s sub-pixels (exact for integer s)
+            out = cv2.resize(out, (u1 - u0, v1 - v0), interpolation=cv2.INTER_AREA)
         alpha = np.clip(out[..., 3], 0.0, 1.0)
         alpha[alpha < 1e-5] = 0.0
         has = alpha > 0
@@ -1053,6 +1120,7 @@ class ObjectRenderer:
             motion_uv_per_m=motion,
             focal_px=self.camera.fx,
             pixel_scale=self.camera.scale,
+            edge_var_px2=edge_var_px2(s),
         )
 
     def _empty(self, anchor_uv: F64, distance: float, motion: F64) -> ObjectRender:

@@ -1,0 +1,149 @@
+"""The rendered object's own edge: a pixel's box, not the lens resampling's extra blur.
+
+A straight edge of a flat panel, rendered through the real (distorted) camera model, is
+compared with the analytic edge (its 3-D line projected by ``CameraModel.project_optical``):
+over many sub-pixel phases (a slanted edge), the coverage against the signed distance to
+the analytic edge is the edge spread function; its derivative's variance is the render's
+own blur. A pixel that integrates its area has 1/12 px^2; the render reports
+``(s^2 + 1) / (12 s^2)`` for s x s supersamples (renderer/object_render.py, step 4). The
+old order (average the supersamples, then resample bilinearly through the distortion)
+measured 0.25 px^2 at s = 4. The composite then gives the object the frame's blur less
+that variance, so a rendered object in a frame of known blur is as sharp as the frame's
+own edges (edge sigma inside / outside in [0.8, 1.25], the issue's bound).
+"""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from geometry.camera import CameraModel, load_cameras
+from geometry.transforms import invert_T, make_T, quat_to_matrix
+from osdar_platform.shared_data import real_labels_path
+from renderer.composite import composite
+from renderer.mesh import ObjectMesh
+from renderer.object_render import ObjectRender, ObjectRenderer, edge_var_px2
+from renderer.sensor_noise import sharpness_inside_outside
+
+REAL_LABELS = real_labels_path()
+SCALE = 0.25
+PANEL_W, PANEL_H = 3.0, 2.5
+
+
+@pytest.fixture(scope="module")
+def cam() -> CameraModel:
+    if not REAL_LABELS.is_file():
+        pytest.skip(f"{REAL_LABELS} not available")
+    raw = json.loads(REAL_LABELS.read_text())
+    return load_cameras(raw)["rgb_highres_center"].scaled(SCALE)
+
+
+def panel() -> ObjectMesh:
+    """A flat grey panel in the object's y-z plane, bottom edge on z = 0."""
+    w, h = PANEL_W / 2, PANEL_H
+    v = np.array([[0, -w, 0], [0, w, 0], [0, w, h], [0, -w, h]], np.float64)
+    return ObjectMesh(v, [[0, 1, 2], [0, 2, 3]], np.full((4, 3), 0.5, np.float32),
+                      np.ones(4, np.float32))  # fmt: skip
+
+
+def panel_pose(distance: float, lateral: float, roll: float) -> np.ndarray:
+    """T_world_obj (vehicle at the world origin): the panel faces the vehicle, rolled by
+    ``roll`` rad about the viewing direction (slanted edges)."""
+    R = quat_to_matrix([0.0, 0.0, 1.0, 0.0]) @ quat_to_matrix(
+        [np.sin(roll / 2), 0.0, 0.0, np.cos(roll / 2)]
+    )
+    return make_T(R, [distance, lateral, -0.5])
+
+
+def edge_distances(
+    cam: CameraModel, r: ObjectRender, T_world_obj: np.ndarray, a: np.ndarray, b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(coverage, signed distance px, negative inside) of the ROI pixels within 3 px of
+    the analytic image of the edge a -> b (object frame), away from its ends."""
+    T_opt_obj = invert_T(cam.T_base_opt) @ T_world_obj
+    t = np.linspace(0.0, 1.0, 4001)
+    p = a[None] + t[:, None] * (b - a)[None]
+    uv, ok = cam.project_optical(p @ T_opt_obj[:3, :3].T + T_opt_obj[:3, 3])
+    assert ok.all()
+    u0, v0, u1, v1 = r.roi
+    vv, uu = np.mgrid[v0:v1, u0:u1]
+    pix = np.stack([uu.ravel(), vv.ravel()], 1).astype(np.float64)
+    _, idx = cKDTree(uv).query(pix)
+    idx = np.clip(idx, 1, len(uv) - 2)
+    tan = uv[idx + 1] - uv[idx - 1]
+    tan /= np.linalg.norm(tan, axis=1, keepdims=True)
+    d = ((pix - uv[idx]) * np.stack([tan[:, 1], -tan[:, 0]], 1)).sum(1)
+    keep = (idx > 400) & (idx < len(uv) - 400) & (np.abs(d) < 3.0)
+    cov, d = r.alpha.ravel()[keep].astype(np.float64), d[keep]
+    if np.corrcoef(cov, d)[0, 1] > 0:
+        d = -d
+    return cov, d
+
+
+def line_spread(cov: np.ndarray, d: np.ndarray, bin_px: float = 0.05) -> tuple[float, float]:
+    """(variance px^2, mean px) of the line spread: the binned edge spread's derivative."""
+    bins = np.arange(-3.0, 3.0 + 1e-9, bin_px)
+    k = np.digitize(d, bins) - 1
+    n = np.bincount(k, minlength=len(bins))[: len(bins) - 1]
+    s = np.bincount(k, weights=cov, minlength=len(bins))[: len(bins) - 1]
+    c = 0.5 * (bins[1:] + bins[:-1])
+    ok = n > 0
+    F, c = s[ok] / n[ok], c[ok]
+    f = -np.gradient(F, c)
+    m = float((f * c).sum() / f.sum())
+    return float((f * (c - m) ** 2).sum() / f.sum()), m
+
+
+@pytest.mark.parametrize("ss", [2, 4])
+def test_rendered_edge_is_a_pixel_box(cam: CameraModel, ss: int) -> None:
+    """Pooled over the panel's four edges at three places in the image: the measured
+    line-spread variance is the reported one within 0.015 px^2 (s = 4: 0.089, a pixel's
+    box 0.083; the old order 0.25), the edge within 0.03 px of the camera model's."""
+    rend = ObjectRenderer(cam, antialias=f"ssaa{ss}")
+    obj = panel()
+    v = obj.vertices
+    covs, ds = [], []
+    for distance, lateral, roll in ((24.0, 0.0, 0.13), (28.0, -3.0, -0.09), (22.0, 3.0, 0.21)):
+        T_wo = panel_pose(distance, lateral, roll)
+        r = rend.render(obj, T_wo, np.eye(4))
+        assert r.roi is not None and r.edge_var_px2 == pytest.approx(edge_var_px2(ss))
+        for a, b in ((0, 1), (1, 2), (2, 3), (3, 0)):
+            c, d = edge_distances(cam, r, T_wo, v[a], v[b])
+            covs.append(c)
+            ds.append(d)
+    var, mean = line_spread(np.concatenate(covs), np.concatenate(ds))
+    assert var == pytest.approx(edge_var_px2(ss), abs=0.015), (var, edge_var_px2(ss))
+    assert abs(mean) < 0.03, mean
+    rend.close()
+
+
+def boxes_frame(shape: tuple[int, int], sigma: float, seed: int) -> np.ndarray:
+    """Random boxes of random levels blurred by a Gaussian of ``sigma`` px, noise of std
+    2 levels; uint8 RGB of ``shape`` (H, W)."""
+    rng = np.random.default_rng(seed)
+    H, W = shape
+    clean = np.full((H, W, 3), 60.0, np.float32)
+    for _ in range(400):
+        x, y = rng.integers(0, W - 40), rng.integers(0, H - 40)
+        w, h = rng.integers(10, 40, 2)
+        clean[y : y + h, x : x + w] = rng.uniform(20, 230)
+    clean = cv2.GaussianBlur(clean, (0, 0), sigma)
+    return np.clip(np.round(clean + rng.normal(0, 2.0, clean.shape)), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("sigma", [0.5, 0.8, 1.5])
+def test_rendered_object_as_sharp_as_the_frame(cam: CameraModel, sigma: float) -> None:
+    """A rendered panel (auto anti-aliasing) composited into a frame of known blur: its
+    silhouette's edge sigma over the real edges' around it in [0.8, 1.25]."""
+    rend = ObjectRenderer(cam)
+    T_wo = panel_pose(26.0, 1.0, 0.12)
+    r = rend.render(panel(), T_wo, np.eye(4))
+    frame = boxes_frame((cam.height, cam.width), sigma, int(10 * sigma))
+    out = composite(frame, r, lab_match=False, match_noise=False)
+    s_obj, s_real = sharpness_inside_outside(out, r.roi, r.alpha)
+    assert 0.8 <= s_obj / s_real <= 1.25, (s_obj, s_real, sigma)
+    rend.close()
