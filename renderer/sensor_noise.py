@@ -146,15 +146,20 @@ def noise_weight(alpha: F64) -> F64:
 
 # ---------------------------------------------------------------------------- sharpness
 _RISE_TO_SIGMA = 2.0 * 1.2815515655446004  # 10-90 % rise of a Gaussian-blurred step
+STEP_FLAT = 0.12  # a step's two ends: std at most this share of its contrast
+STEP_MONOTONE = 0.15  # ... and its profile within this share of its rising envelope
 
 
 def edge_sigma_px(
     gray: NDArray, points: F64, normals: F64, *, half_px: float = 6.0, min_contrast: float = 20.0
 ) -> F64:
     """Blur (Gaussian sigma, px) of step edges: at each point (n, 2) (u, v), the profile
-    along its unit normal (n, 2) over +-``half_px`` is read (bilinear), its ends give the
-    two levels, and the 10-90 % rise distance / 2.563 is the sigma. Profiles whose
-    contrast is below ``min_contrast`` or that are not monotonic enough are NaN."""
+    along its unit normal (n, 2) over +-``half_px`` is read (bilinear), its ends (1/8 of
+    it each) give the two levels, and the 10-90 % rise distance / 2.563 is the sigma.
+    NaN for what is not a step: contrast below ``min_contrast``, an end not flat (std
+    above ``STEP_FLAT`` x the contrast: texture, shading) or a profile that falls back
+    (more than ``STEP_MONOTONE`` of the contrast below its running maximum: a thin line
+    or limb, whose far side lies within the profile)."""
     g = np.asarray(gray, np.float32)
     t = np.arange(-half_px, half_px + 1e-9, 0.25, dtype=np.float32)
     p = np.asarray(points, np.float32).reshape(-1, 2)
@@ -171,13 +176,17 @@ def edge_sigma_px(
     c = hi - lo
     out = np.full(len(p), np.nan)
     ok = np.abs(c) >= min_contrast
+    ok &= np.maximum(prof[:, :k].std(1), prof[:, -k:].std(1)) <= STEP_FLAT * np.abs(c)
     if not ok.any():
         return out
-    f = (prof[ok] - lo[ok, None]) / c[ok, None]  # 0 -> 1 across the edge
-    f = np.maximum.accumulate(np.clip(f, 0.0, 1.0), axis=1)  # monotonic envelope
-    t10 = np.array([np.interp(0.1, fi, t) for fi in f])
-    t90 = np.array([np.interp(0.9, fi, t) for fi in f])
-    out[ok] = (t90 - t10) / _RISE_TO_SIGMA
+    f = np.clip((prof[ok] - lo[ok, None]) / c[ok, None], 0.0, 1.0)  # 0 -> 1 across the edge
+    env = np.maximum.accumulate(f, axis=1)  # monotonic envelope
+    step = (env - f).max(axis=1) <= STEP_MONOTONE
+    idx = np.flatnonzero(ok)[step]
+    env = env[step]
+    t10 = np.array([np.interp(0.1, fi, t) for fi in env])
+    t90 = np.array([np.interp(0.9, fi, t) for fi in env])
+    out[idx] = (t90 - t10) / _RISE_TO_SIGMA
     return out
 
 
@@ -185,32 +194,35 @@ def sharpness_inside_outside(
     out_rgb: NDArray[np.uint8], roi: tuple[int, int, int, int], alpha: NDArray, ring_px: int = 48
 ) -> tuple[float, float]:
     """(median edge sigma of the object's silhouette, median edge sigma of the real
-    edges in a ring of ``ring_px`` around it) in the composited frame, px; NaN where no
-    edge qualified. Silhouette points: where the coverage crosses 0.5, normals from its
-    gradient; real edges: Canny edges of the frame outside the object's dilated mask,
-    normals from the image gradient."""
+    edges in a ring of ``ring_px`` around it) in the composited frame, px; NaN where
+    fewer than 10 edges qualified. Both sides are measured alike: Canny edges of the
+    frame, profiles along the image gradient (:func:`edge_sigma_px`, step edges only).
+    Silhouette edges: those within about 1.5 px of where the coverage ``alpha`` (the
+    ROI's; a binary mask will do) crosses 0.5; real edges: those outside the object's
+    mask grown by 7 px."""
     gray = cv2.cvtColor(np.asarray(out_rgb), cv2.COLOR_RGB2GRAY).astype(np.float32)
     H, W = gray.shape
     u0, v0, u1, v1 = roi
     a = np.zeros((H, W), np.float32)
     a[v0:v1, u0:u1] = alpha
     a_s = cv2.GaussianBlur(a, (5, 5), 1.0)
-    gx, gy = cv2.Sobel(a_s, cv2.CV_32F, 1, 0), cv2.Sobel(a_s, cv2.CV_32F, 0, 1)
-    edge = (np.abs(a_s - 0.5) < 0.2) & (np.hypot(gx, gy) > 1e-3)
-    vs, us = np.nonzero(edge)
-    nrm = -np.stack([gx[vs, us], gy[vs, us]], 1)  # from the object outwards
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-9)
-    s_obj = edge_sigma_px(gray, np.stack([us, vs], 1).astype(float), nrm)
+    contour = (np.abs(a_s - 0.5) < 0.2).astype(np.uint8)
+    silhouette = cv2.dilate(contour, np.ones((3, 3), np.uint8)).astype(bool)
     obj = (a > 0.02).astype(np.uint8)
     near = cv2.dilate(obj, np.ones((2 * ring_px + 1,) * 2, np.uint8)).astype(bool)
     away = ~cv2.dilate(obj, np.ones((15, 15), np.uint8)).astype(bool)
-    canny = cv2.Canny(np.clip(gray, 0, 255).astype(np.uint8), 40, 100).astype(bool) & near & away
-    vs, us = np.nonzero(canny)
+    canny = cv2.Canny(np.clip(gray, 0, 255).astype(np.uint8), 40, 100).astype(bool)
     sm = cv2.GaussianBlur(gray, (5, 5), 1.0)
     ix, iy = cv2.Sobel(sm, cv2.CV_32F, 1, 0), cv2.Sobel(sm, cv2.CV_32F, 0, 1)
-    nr = np.stack([ix[vs, us], iy[vs, us]], 1)
-    nr /= np.maximum(np.linalg.norm(nr, axis=1, keepdims=True), 1e-9)
-    s_real = edge_sigma_px(gray, np.stack([us, vs], 1).astype(float), nr)
+
+    def sigmas(sel: NDArray[np.bool_]) -> F64:
+        vs, us = np.nonzero(sel)
+        nr = np.stack([ix[vs, us], iy[vs, us]], 1)
+        nr /= np.maximum(np.linalg.norm(nr, axis=1, keepdims=True), 1e-9)
+        return edge_sigma_px(gray, np.stack([us, vs], 1).astype(float), nr)
+
+    s_obj = sigmas(canny & silhouette)
+    s_real = sigmas(canny & near & away)
 
     def med(x: F64) -> float:
         x = x[np.isfinite(x)]

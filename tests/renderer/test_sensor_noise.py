@@ -148,3 +148,30 @@ def test_object_edges_as_sharp_as_the_frames() -> None:
     s_obj, s_real = sharpness_inside_outside(out, r.roi, r.alpha)
     assert 0.8 <= s_obj / s_real <= 1.25, (s_obj, s_real, want)
     assert abs(s_real / want - 1.0) < 0.2
+
+
+def test_edge_sigma_reads_steps_only() -> None:
+    """Across a 5 px bar (its far side within the profile: a thin limb) no sigma is
+    read, across a fine texture at most a quarter of the profiles (the monotonic
+    envelope alone read the bar and two thirds of the texture: 1.8 px in the median);
+    across the step next to them the known blur is."""
+    rng = np.random.default_rng(5)
+    img = np.full((120, 160), 60.0, np.float32)
+    img[:, 40:45] = 180.0  # a thin bar
+    img[:, 100:] = 180.0  # a step
+    tex = cv2.GaussianBlur(rng.normal(0.0, 1.0, (40, 160)).astype(np.float32), (0, 0), 1.2)
+    img[80:120] = 120.0 + 40.0 * tex / tex.std()  # a fine texture, no steps
+    img = cv2.GaussianBlur(img, (0, 0), 0.8) + rng.normal(0, 2.0, img.shape)
+    rows = np.arange(10, 70)
+    right = np.tile([1.0, 0.0], (len(rows), 1))
+    bar = edge_sigma_px(img, np.stack([np.full(len(rows), 39.5), rows], 1), right)
+    assert np.isnan(bar).all()
+    step = edge_sigma_px(img, np.stack([np.full(len(rows), 99.5), rows], 1), right)
+    assert abs(np.nanmedian(step) / 0.8 - 1.0) < 0.15 and np.isfinite(step).all()
+    tv, tu = np.mgrid[85:115:3, 10:150:3]
+    pts = np.stack([tu.ravel(), tv.ravel()], 1).astype(float)
+    gy, gx = np.gradient(cv2.GaussianBlur(img, (0, 0), 1.0))
+    g = np.stack([gx[tv, tu].ravel(), gy[tv, tu].ravel()], 1)
+    g /= np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-9)
+    texture = edge_sigma_px(img, pts, g)
+    assert np.isfinite(texture).mean() < 0.25, np.isfinite(texture).mean()
