@@ -19,7 +19,8 @@ ratios) and the frames stage alone / floor. Then the camera's look in the last j
 output (``--look-frames`` frames per camera, the object's poly2d from the labels): the
 robust noise inside the object over the frame's noise at the same level measured around
 it (renderer/sensor_noise.py; the issue's bound [0.8, 1.25]), and the edge sigma of the
-object's silhouette over that of the real edges around it. With ``--origins`` (default
+object's silhouette over that of the real step edges around it (both read alike,
+``sharpness_inside_outside``; the same bound). With ``--origins`` (default
 ``SEQ/ground_truth/lidar_origins.json`` when present) it also compares the lidar cast
 with per-sensor origins against the paper's single origin on every frame.
 """
@@ -157,7 +158,7 @@ def look_check(seq: Sequence, out: Path, cams: list[str], n_frames: int) -> dict
     print(f"  robust noise ratio: median {res['noise_ratio_median']:.3f}, range "
           f"{np.round(res['noise_ratio_range'], 3).tolist()} (bound [0.8, 1.25])")  # fmt: skip
     print(f"  edge sigma ratio:   median {res['sharpness_ratio_median']:.3f}, range "
-          f"{np.round(res['sharpness_ratio_range'], 3).tolist()}")  # fmt: skip
+          f"{np.round(res['sharpness_ratio_range'], 3).tolist()} (bound [0.8, 1.25])")  # fmt: skip
     return res
 
 
