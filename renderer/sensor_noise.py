@@ -148,6 +148,7 @@ def noise_weight(alpha: F64) -> F64:
 _RISE_TO_SIGMA = 2.0 * 1.2815515655446004  # 10-90 % rise of a Gaussian-blurred step
 STEP_FLAT = 0.12  # a step's two ends: std at most this share of its contrast
 STEP_MONOTONE = 0.15  # ... and its profile within this share of its rising envelope
+SIDE_PX, SIDE_CONTRAST = 2.0, 0.6  # a silhouette edge: coverage differs this much 2 px across
 
 
 def edge_sigma_px(
@@ -190,6 +191,16 @@ def edge_sigma_px(
     return out
 
 
+def silhouette_band(coverage: NDArray[np.float32]) -> NDArray[np.bool_]:
+    """(H, W) pixels next to where ``coverage`` (H, W) crosses 0.5: inside pixels with an
+    outside 8-neighbour and the reverse (both sides of the line, whatever its direction;
+    a band ``|coverage - 0.5| < t`` misses a binary mask's straight edges, where the
+    smoothed values sit at 0.3 / 0.7)."""
+    inside = (np.asarray(coverage) >= 0.5).astype(np.uint8)
+    k3 = np.ones((3, 3), np.uint8)
+    return np.asarray(cv2.dilate(inside, k3) != cv2.erode(inside, k3), bool)
+
+
 def sharpness_inside_outside(
     out_rgb: NDArray[np.uint8], roi: tuple[int, int, int, int], alpha: NDArray, ring_px: int = 48
 ) -> tuple[float, float]:
@@ -197,17 +208,18 @@ def sharpness_inside_outside(
     edges in a ring of ``ring_px`` around it) in the composited frame, px; NaN where
     fewer than 10 edges qualified. Both sides are measured alike: Canny edges of the
     frame, profiles along the image gradient (:func:`edge_sigma_px`, step edges only).
-    Silhouette edges: those within about 1.5 px of where the coverage ``alpha`` (the
-    ROI's; a binary mask will do) crosses 0.5; real edges: those outside the object's
-    mask grown by 7 px."""
+    Silhouette edges: those next to where the coverage ``alpha`` (the ROI's; a binary
+    mask will do), smoothed by a Gaussian of 1 px, crosses 0.5, with the object on one
+    side and the background on the other (coverage differing by ``SIDE_CONTRAST``
+    ``SIDE_PX`` to either side); real edges: those outside the object's mask grown by
+    7 px."""
     gray = cv2.cvtColor(np.asarray(out_rgb), cv2.COLOR_RGB2GRAY).astype(np.float32)
     H, W = gray.shape
     u0, v0, u1, v1 = roi
     a = np.zeros((H, W), np.float32)
     a[v0:v1, u0:u1] = alpha
     a_s = cv2.GaussianBlur(a, (5, 5), 1.0)
-    contour = (np.abs(a_s - 0.5) < 0.2).astype(np.uint8)
-    silhouette = cv2.dilate(contour, np.ones((3, 3), np.uint8)).astype(bool)
+    silhouette = silhouette_band(a_s)
     obj = (a > 0.02).astype(np.uint8)
     near = cv2.dilate(obj, np.ones((2 * ring_px + 1,) * 2, np.uint8)).astype(bool)
     away = ~cv2.dilate(obj, np.ones((15, 15), np.uint8)).astype(bool)
@@ -215,13 +227,20 @@ def sharpness_inside_outside(
     sm = cv2.GaussianBlur(gray, (5, 5), 1.0)
     ix, iy = cv2.Sobel(sm, cv2.CV_32F, 1, 0), cv2.Sobel(sm, cv2.CV_32F, 0, 1)
 
-    def sigmas(sel: NDArray[np.bool_]) -> F64:
+    def sigmas(sel: NDArray[np.bool_], across: bool = False) -> F64:
         vs, us = np.nonzero(sel)
         nr = np.stack([ix[vs, us], iy[vs, us]], 1)
         nr /= np.maximum(np.linalg.norm(nr, axis=1, keepdims=True), 1e-9)
-        return edge_sigma_px(gray, np.stack([us, vs], 1).astype(float), nr)
+        pts = np.stack([us, vs], 1).astype(float)
+        if across:  # the edge separates the object from the background
+            side = [cv2.remap(a_s, (pts[:, 0] + d * nr[:, 0]).astype(np.float32)[None],
+                              (pts[:, 1] + d * nr[:, 1]).astype(np.float32)[None],
+                              cv2.INTER_LINEAR)[0] for d in (-SIDE_PX, SIDE_PX)]  # fmt: skip
+            keep = np.abs(side[1] - side[0]) > SIDE_CONTRAST
+            pts, nr = pts[keep], nr[keep]
+        return edge_sigma_px(gray, pts, nr)
 
-    s_obj = sigmas(canny & silhouette)
+    s_obj = sigmas(canny & silhouette, across=True)
     s_real = sigmas(canny & near & away)
 
     def med(x: F64) -> float:

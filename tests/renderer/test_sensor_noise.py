@@ -14,6 +14,7 @@ from renderer.sensor_noise import (
     estimate_noise,
     robust_sigma,
     sharpness_inside_outside,
+    silhouette_band,
 )
 
 H, W = 240, 320
@@ -175,3 +176,28 @@ def test_edge_sigma_reads_steps_only() -> None:
     g /= np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-9)
     texture = edge_sigma_px(img, pts, g)
     assert np.isfinite(texture).mean() < 0.25, np.isfinite(texture).mean()
+
+
+def test_silhouette_band_follows_every_side() -> None:
+    """The band of a binary square (smoothed as sharpness_inside_outside does) runs
+    along all four sides on both sides of the boundary; the old band |a - 0.5| < 0.2
+    held its corners only. A disc's anti-aliased coverage and its binary mask give
+    the same band but for a few pixels."""
+    a = np.zeros((120, 120), np.float32)
+    a[20:100, 30:90] = 1.0
+    band = silhouette_band(cv2.GaussianBlur(a, (5, 5), 1.0))
+    for rows, cols in (
+        (slice(19, 21), slice(35, 85)),
+        (slice(99, 101), slice(35, 85)),
+        (slice(25, 95), slice(29, 31)),
+        (slice(25, 95), slice(89, 91)),
+    ):
+        assert band[rows, cols].all()
+    old = np.abs(cv2.GaussianBlur(a, (5, 5), 1.0) - 0.5) < 0.2
+    assert not old[25:95, 29:31].any()
+    yy, xx = (np.mgrid[0:480, 0:480] + 0.5) / 4.0
+    disc = ((xx - 60.2) ** 2 + (yy - 59.7) ** 2 < 30.0**2).astype(np.float32)
+    soft = cv2.resize(disc, (120, 120), interpolation=cv2.INTER_AREA)
+    b_soft = silhouette_band(cv2.GaussianBlur(soft, (5, 5), 1.0))
+    b_bin = silhouette_band(cv2.GaussianBlur((soft > 0.5).astype(np.float32), (5, 5), 1.0))
+    assert (b_soft != b_bin).sum() <= 0.05 * b_soft.sum()
