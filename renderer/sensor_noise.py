@@ -161,11 +161,25 @@ def edge_sigma_px(
     above ``STEP_FLAT`` x the contrast: texture, shading) or a profile that falls back
     (more than ``STEP_MONOTONE`` of the contrast below its running maximum: a thin line
     or limb, whose far side lies within the profile)."""
+    t, idx, env = step_profiles(gray, points, normals, half_px, min_contrast)
+    out = np.full(len(np.asarray(points).reshape(-1, 2)), np.nan)
+    t10 = np.array([np.interp(0.1, fi, t) for fi in env])
+    t90 = np.array([np.interp(0.9, fi, t) for fi in env])
+    out[idx] = (t90 - t10) / _RISE_TO_SIGMA
+    return out
+
+
+def step_profiles(
+    gray: NDArray, points: F64, normals: F64, half_px: float = 6.0, min_contrast: float = 20.0
+) -> tuple[NDArray[np.float32], NDArray[np.int64], F64]:
+    """The step edges among ``points`` (n, 2) (:func:`edge_sigma_px`'s tests): (t (T,)
+    offsets along the normal px, idx (m,) the points that are steps, env (m, T) their
+    profiles' rising envelopes, 0 -> 1 across the edge)."""
     g = np.asarray(gray, np.float32)
     t = np.arange(-half_px, half_px + 1e-9, 0.25, dtype=np.float32)
     p = np.asarray(points, np.float32).reshape(-1, 2)
     if len(p) == 0:
-        return np.zeros(0)
+        return t, np.zeros(0, np.int64), np.zeros((0, len(t)))
     n = np.asarray(normals, np.float32)
     mx = (p[:, 0:1] + t[None] * n[:, 0:1]).astype(np.float32)
     my = (p[:, 1:2] + t[None] * n[:, 1:2]).astype(np.float32)
@@ -175,20 +189,12 @@ def edge_sigma_px(
     k = max(len(t) // 8, 2)
     lo, hi = prof[:, :k].mean(1), prof[:, -k:].mean(1)
     c = hi - lo
-    out = np.full(len(p), np.nan)
     ok = np.abs(c) >= min_contrast
     ok &= np.maximum(prof[:, :k].std(1), prof[:, -k:].std(1)) <= STEP_FLAT * np.abs(c)
-    if not ok.any():
-        return out
     f = np.clip((prof[ok] - lo[ok, None]) / c[ok, None], 0.0, 1.0)  # 0 -> 1 across the edge
     env = np.maximum.accumulate(f, axis=1)  # monotonic envelope
     step = (env - f).max(axis=1) <= STEP_MONOTONE
-    idx = np.flatnonzero(ok)[step]
-    env = env[step]
-    t10 = np.array([np.interp(0.1, fi, t) for fi in env])
-    t90 = np.array([np.interp(0.9, fi, t) for fi in env])
-    out[idx] = (t90 - t10) / _RISE_TO_SIGMA
-    return out
+    return t, np.flatnonzero(ok)[step], env[step]
 
 
 def silhouette_band(coverage: NDArray[np.float32]) -> NDArray[np.bool_]:
