@@ -10,27 +10,31 @@ synthetic sequences are registered, a dry run of the campaign fills the preparat
 processes are warmed by a job each; then the campaign is submitted and timed from its POST
 to its end (the manifest written). Variants per minute for each worker count, their
 ratio (goal >= 1.8), the busy cores, the worker threads' wait for a CPU (Linux schedstat:
-what the machine's other work took), the stage seconds per variant, and the load averages
-(the machine is shared). With one worker process, ``--singles`` of the campaign's variants
-are then run again one at a time as jobs of their own (the variant's job spec, POST
-/v1/jobs): the per-variant time, a job's first stage to its published result, in the
-campaign (median over its variants) against as a single job (median), goal <= 1.1; beside
-it the variants' own stage seconds, the campaign's wall time / variants against a single
-job's POST to SUCCEEDED, and the worker's CPU seconds per variant.
+what the machine's other work took), the stage seconds per variant, the worker processes'
+share of the time spent inside a stage (the rest: dispatch, waits between stages, idle
+processes), and the load averages (the machine is shared). With one worker process,
+``--singles`` of the campaign's variants are then run again one at a time as jobs of their
+own (the variant's job spec, POST /v1/jobs): the per-variant time, a job's first stage
+to its published result, in the campaign (median over its variants) against as a single
+job (median), goal <= 1.1; beside it the variants' own stage seconds, the campaign's wall
+time / variants against a single job's POST to SUCCEEDED, and the worker's CPU seconds per
+variant.
 
 Defaults: 2 synthetic sequences (fire_site, station) of 40 frames at 0.15 of the real
 resolution, 4 built-in obstacles, 3 explicit track placements: 24 variants of 2 chunks.
 
     .venv/bin/python scripts/bench_campaign_throughput.py [--frames 40] [--db postgres]
 
-``--profile DIR``: py-spy (if installed: it is no dependency of the project) samples the
-worker's process tree during the 2-process campaign into DIR/workers.speedscope.json.
+``--profile DIR``: py-spy (if installed: it is no dependency of the project; 0.3.14 reads
+this machine's Python 3.11.7, 0.4.3 does not find its version) samples the worker's process
+tree during the 2-process campaign into DIR/workers.speedscope.json.
 """
 
 from __future__ import annotations
 
 import argparse
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -101,6 +105,13 @@ class Run:
     def per_min(self) -> float:
         return 60.0 * self.variants / self.wall_s
 
+    @property
+    def in_stages(self) -> float:
+        """The worker processes' share of the campaign's wall time spent inside a stage
+        (the variants' stage seconds over processes x wall): the rest is dispatch, the
+        broker, waits between stages and idle processes."""
+        return sum(self.work_s) / (self.workers * self.wall_s)
+
 
 def _wait_campaign(
     svc: Service, campaign_id: str, states: tuple[str, ...], timeout_s: float
@@ -168,9 +179,9 @@ def run_campaign(folders: list[Path], workers: int, root: Path, args: argparse.N
         on1, wait1 = svc.sched_s()
         run.runqueue_s = wait1 - wait0
         run.load = load_averages()
-        if spy is not None:
-            spy.terminate()
-            spy.wait(60)
+        if spy is not None:  # py-spy writes its profile on SIGINT (not on SIGTERM)
+            spy.send_signal(signal.SIGINT)
+            spy.wait(120)
         if end["state"] != "SUCCEEDED":
             raise RuntimeError(f"campaign ended {end['state']}: {end['error']}")
         jobs = _variant_jobs(svc, c["id"])
@@ -222,7 +233,8 @@ def report(runs: dict[int, Run], args: argparse.Namespace) -> None:
         print(f"{r.workers} worker process(es): {r.variants} variants in {r.wall_s:.1f} s = "
               f"{r.per_min:.1f} variants/min, {r.cores:.2f} cores busy, "
               f"{r.runqueue_s / r.wall_s:.2f} threads waiting for a CPU ({r.load})")  # fmt: skip
-        print(f"  stage seconds per variant: {stage_line(r.stages)}")
+        print(f"  stage seconds per variant: {stage_line(r.stages)}; the processes inside a "
+              f"stage {100 * r.in_stages:.0f} % of the time")  # fmt: skip
     one, two = runs[1], runs[2]
     ratio = two.per_min / one.per_min
     print(f"throughput ratio 2 / 1 workers: {ratio:.2f} (goal >= 1.8: "
