@@ -473,29 +473,42 @@ def _augment_spec(run: JobRun) -> AugmentSpec:
 def _plan(run: JobRun) -> Plan:
     """The augmentation plan of this attempt: computed once, shared through the store.
 
-    Every chunk needs it; the first worker to need it computes and uploads it (a race
-    only computes the same plan twice), the others download it.
+    Every chunk needs it; the first worker to need it computes and uploads it, the others
+    download it (a race between machines only computes the same plan twice). The chunks
+    of a job running at once on one machine wait for each other here: one computes, the
+    others read its file (with 2 worker processes both chunks of a variant start together,
+    and both computed the plan).
     """
     local = run.workdir / "plan.npz"
-    key = f"{run.prefix}plan.npz"
     if not local.is_file():
         local.parent.mkdir(parents=True, exist_ok=True)
-        # Chunk tasks of one job run concurrently on one machine: every temporary file is
-        # private to its process, and the shared file appears only by an atomic rename.
-        tmp = local.with_name(f"plan.{os.getpid()}.{uuid.uuid4().hex}.part")
-        if run.store.exists(key):
-            run.store.get_file(key, tmp)
-            tmp.replace(local)
-        else:
-            prepared = _prepare(run)
-            plan = plan_augmentation(_local_sequence(run), _augment_spec(run), prepared)
-            if prepared.calibration is not None:
-                plan.info["calibration"] = prepared.calibration.summary()
-            tmp.write_bytes(dump_plan(plan))
-            run.store.put_file(key, tmp)
-            tmp.replace(local)
-            return plan
+        with key_lock(run.workdir, "plan"):
+            if not local.is_file():
+                plan = _make_plan(run, local)
+                if plan is not None:
+                    return plan
     return read_plan(local)  # a typed record, validated as it is read
+
+
+def _make_plan(run: JobRun, local: Path) -> Plan | None:
+    """The plan into ``local``: from the store (None returned), or computed and uploaded
+    (returned)."""
+    key = f"{run.prefix}plan.npz"
+    # a worker killed half-way leaves only its private temporary file: the shared file
+    # appears by an atomic rename
+    tmp = local.with_name(f"plan.{os.getpid()}.{uuid.uuid4().hex}.part")
+    if run.store.exists(key):
+        run.store.get_file(key, tmp)
+        tmp.replace(local)
+        return None
+    prepared = _prepare(run)
+    plan = plan_augmentation(_local_sequence(run), _augment_spec(run), prepared)
+    if prepared.calibration is not None:
+        plan.info["calibration"] = prepared.calibration.summary()
+    tmp.write_bytes(dump_plan(plan))
+    run.store.put_file(key, tmp)
+    tmp.replace(local)
+    return plan
 
 
 def _chunk_dir(run: JobRun, index: int) -> Path:
