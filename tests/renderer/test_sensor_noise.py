@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from renderer.composite import FEATHER_SIGMA_PX, blur_sigma_px, composite
-from renderer.object_render import ObjectRender
+from renderer.object_render import ObjectRender, edge_var_px2
 from renderer.sensor_noise import (
     edge_sigma_px,
     estimate_noise,
@@ -41,11 +41,16 @@ def noisy_frame(seed: int, texture: bool = False) -> tuple[np.ndarray, np.ndarra
 
 
 def square(level_lin: float, roi=(100, 60, 220, 180), size: int = 80) -> ObjectRender:
+    """A square of ``size`` px turned by 2 degrees, its coverage the mean of 8 x 8
+    supersamples like the renderer's (edge spread ``edge_var_px2(8)``: a binary
+    pixel-aligned mask has none and would not be the render it claims to be)."""
     u0, v0, u1, v1 = roi
     h, w = v1 - v0, u1 - u0
-    alpha = np.zeros((h, w), np.float32)
-    o = (h - size) // 2
-    alpha[o : o + size, o : o + size] = 1.0
+    s = 8
+    hi = np.zeros((h * s, w * s), np.float32)
+    corners = cv2.boxPoints(((w * s / 2, h * s / 2), (size * s, size * s), 2.0))
+    cv2.fillPoly(hi, [np.round(corners).astype(np.int32)], 1.0)
+    alpha = np.asarray(cv2.resize(hi, (w, h), interpolation=cv2.INTER_AREA), np.float32)
     yy = np.linspace(0.9, 1.1, h, dtype=np.float32)[:, None, None]
     color = np.where(alpha[..., None] > 0, level_lin * yy, 0.0).astype(np.float32) * np.ones(3)
     return ObjectRender(
@@ -53,7 +58,7 @@ def square(level_lin: float, roi=(100, 60, 220, 180), size: int = 80) -> ObjectR
         depth=np.where(alpha > 0, 30.0, np.nan).astype(np.float32),
         shadow=np.zeros((h, w), np.float32), visible_fraction=1.0,
         anchor_uv=np.array([160.0, 160.0]), bbox=(0.0, 0.0, 1.0, 1.0), distance_m=30.0,
-        focal_px=1000.0, pixel_scale=1.0,
+        focal_px=1000.0, pixel_scale=1.0, edge_var_px2=edge_var_px2(s),
     )  # fmt: skip
 
 
