@@ -21,6 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from worker.gzip_stored import GzipStoredWriter
 from worker.osdar.images import write_png
 from worker.osdar.sequence import Sequence
 
@@ -29,6 +30,14 @@ EXCLUDED = frozenset({"ground_truth"})
 PREVIEW_WIDTH_PX = 320
 BEV_EXTENT_M = (-20.0, 80.0, -30.0, 30.0)  # x min, x max, y min, y max (lidar frame)
 BEV_CELL_M = 0.25
+#: Files already compressed: stored in the archive's gzip stream, not deflated again.
+STORED_SUFFIXES = frozenset({".png", ".jpg", ".jpeg"})
+#: The deflate level of the rest (lidar PCDs, labels, CSVs). Measured on a 40-frame
+#: synthetic variant (61.8 MB of files: PNGs 23.5, PCDs 38.1) with ``tarfile``'s single
+#: level: 0 (stored) 0.13 s of CPU, 61.8 MB; 1: 1.14 s, 46.2 MB; 6: 2.00 s, 45.1 MB;
+#: 9: 4.70 s, 45.1 MB; the PNGs' part of level 1 alone 0.51 s for 0.5 % of their bytes.
+#: PNGs stored and the rest at level 1: 0.70 s, 46.3 MB.
+ARCHIVE_DEFLATE_LEVEL = 1
 
 
 def preview_frames(frames: list[int]) -> list[int]:
@@ -101,7 +110,8 @@ def build_archive(
     extra: dict[str, Path] | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> Path:
-    """Tar+gzip ``seq_folder`` (without ``ground_truth/``) and ``extra`` into ``archive``.
+    """Tar+gzip ``seq_folder`` (without ``ground_truth/``) and ``extra`` into ``archive``:
+    one gzip member, PNGs stored in it, the rest deflated at ``ARCHIVE_DEFLATE_LEVEL``.
 
     ``extra`` maps a path inside the sequence folder of the archive (``metrics.json``,
     ``report/...``) to a local file; it replaces a file of the folder at the same path.
@@ -121,13 +131,17 @@ def build_archive(
     archive.parent.mkdir(parents=True, exist_ok=True)
     tmp = archive.with_name(archive.name + ".partial")
     try:
-        with tarfile.open(tmp, "w:gz", compresslevel=1) as tar:
-            for k, path in enumerate(files, 1):
-                tar.add(path, arcname=f"{name}/{path.relative_to(seq_folder).as_posix()}")
-                if progress is not None and (k % 20 == 0 or k == len(files)):
-                    progress(k, total)
-            for arcname, path in sorted(extra.items()):
-                tar.add(path, arcname=f"{name}/{arcname}")
+        with open(tmp, "wb") as raw, GzipStoredWriter(raw, level=ARCHIVE_DEFLATE_LEVEL) as gz:
+            with tarfile.open(fileobj=gz, mode="w") as tar:  # type: ignore[call-overload]
+                for k, path in enumerate(files, 1):
+                    gz.stored = path.suffix.lower() in STORED_SUFFIXES
+                    tar.add(path, arcname=f"{name}/{path.relative_to(seq_folder).as_posix()}")
+                    if progress is not None and (k % 20 == 0 or k == len(files)):
+                        progress(k, total)
+                for arcname, path in sorted(extra.items()):
+                    gz.stored = path.suffix.lower() in STORED_SUFFIXES
+                    tar.add(path, arcname=f"{name}/{arcname}")
+                gz.stored = False  # the tar's end blocks
         tmp.replace(archive)
     except BaseException:
         tmp.unlink(missing_ok=True)
