@@ -29,12 +29,26 @@ Range noise: inverse range is linear on a plane
        variance (its leverage: the three parameters fitted), so on a plane with range
        noise sigma, ``z`` has std sigma, in metres along the ray. Points with ``h >
        MAX_LEVERAGE`` are left out (a choice from the geometry alone: no bias);
-    3. the scale of ``z``: a two-component zero-mean Gaussian scale mixture fitted by EM
+    3. only points whose neighbours are a plane among themselves: the spread of the
+       neighbours' own residuals against the fit, ``s_nb = sqrt(k / (k - 3) sum w e^2 /
+       sum w)`` with ``e = (q - g . u) r^2`` in metres (``k`` neighbours, three
+       parameters fitted; std sigma on a plane), below ``PLANAR_SPREAD`` times the
+       current estimate. A kink or a step in the
+       neighbourhood (a sleeper's end, a ballast shoulder's break, a rail's foot)
+       shifts ``z`` by a few centimetres, the noise's own scale: half the track bed's
+       points, and the core below read 1.15-1.6x the noise with them. On a plane the
+       neighbours' residuals are independent of the fitted value (least squares), so the
+       choice does not bias ``z``; it is iterated with the estimate (``PLANAR_ROUNDS``).
+       A spinning lidar's point takes the largest spread of itself and the points of
+       the beams above and below in its column (:func:`beam_neighbour_max`);
+    4. the scale of ``z``: a two-component zero-mean Gaussian scale mixture fitted by EM
        (Dempster, Laird & Rubin 1977): a core of std sigma (the noise) and a wide
        component (at least ``2 sigma``: neighbours across an edge, a rail, a corner,
        vegetation). Its start is ``1.4826 median |z|``. The core's sigma is the estimate.
 
-    A surface's roughness at the scale of four scan steps counts as noise.
+    Six neighbours (``SCAN_OFFSETS``), three more than the plane's parameters: with four,
+    the fit's third direction (the scan line's curvature) takes up a kink between
+    symmetric neighbours exactly, and step 3 would not see it.
 
 Dropout: missing times on a scan line
     Along a scan line the columns are fired at a regular time step (the median column
@@ -66,16 +80,20 @@ F64 = NDArray[np.float64]
 
 NOISE_SHELL_M = 10.0
 WIDE_SHELL_M = 30.0  # when the shell has fewer than MIN_NOISE_POINTS usable residuals
-SCAN_OFFSETS = (-2, -1, 1, 2)
+SCAN_OFFSETS = (-3, -2, -1, 1, 2, 3)
 NOISE_NEIGHBOURS = 8
 NOISE_MAX_POINTS = 8000
 MIN_NOISE_POINTS = 60
+PLANAR_SPREAD = 1.5
+PLANAR_ROUNDS = 5
+START_SHARE = 0.25
 MAX_LEVERAGE = 10.0
 MAX_GAP_STEPS = 6
 SURFACE_RANGE_STEP = 0.1
 #: Elevation gap (deg) between two rings (:func:`ring_dropout`).
 RING_GAP_DEG = 0.12
 EM_ITERATIONS = 60
+EM_TOLERANCE = 1e-5  # relative change of the core's sigma: converged
 SCAN_MARGIN_M = 2.0
 _MAD_TO_SIGMA = 1.4826
 
@@ -118,11 +136,13 @@ def measure_lidar_noise(
             inside = (d[sel] > radius) & (d[sel] <= outer)
             p, o = xyz[sel], o_all[sel]
             t = None if t_all is None else t_all[sel]
-            z = standardised_residuals(p, o, t)[inside]
-            z = z[np.isfinite(z)]
-            if len(z) >= MIN_NOISE_POINTS:
+            z, spread = residuals_and_spread(p, o, t)
+            z, spread = z[inside], spread[inside]
+            fin = np.isfinite(z)
+            z, spread = z[fin], spread[fin]
+            sigma = planar_core_sigma(z, spread)
+            if np.isfinite(sigma):
                 break
-        sigma = core_sigma(z)
         drop, rings = dropout_rate(p, o, t, inside)
         out[int(s)] = LidarNoise(sigma, drop, int(inside.sum()), rings)
         logger.debug("lidar noise sensor %d: %d points (%d residuals), range sigma %.4f m, "
@@ -188,14 +208,22 @@ def standardised_residuals(p: F64, o: F64, t: F64 | None) -> F64:
     """Per point (n, 3) with its origin (n, 3) and timestamp (n,): the standardised
     inverse-range residual ``z`` (m, module docstring) against its scan-line neighbours
     (without times: its nearest neighbours in direction); NaN where it has none."""
+    return residuals_and_spread(p, o, t)[0]
+
+
+def residuals_and_spread(p: F64, o: F64, t: F64 | None) -> tuple[F64, F64]:
+    """(z (n,), s_nb (n,)): :func:`standardised_residuals` and the spread of the
+    neighbours' own residuals against the same fit (m, module docstring, step 3); NaN
+    where a point has no neighbours."""
     n = len(p)
     z = np.full(n, np.nan)
+    spread = np.full(n, np.nan)
     if n < len(SCAN_OFFSETS) + 1:
-        return z
+        return z, spread
     v = p - o
     r = np.linalg.norm(v, axis=1)
     if np.any(r <= 1e-6):
-        return z
+        return z, spread
     u = v / r[:, None]
     if t is not None:
         nb = scan_neighbours(u, t)
@@ -205,7 +233,7 @@ def standardised_residuals(p: F64, o: F64, t: F64 | None) -> F64:
         nb = found[:, 1:]
     ok = np.all(nb >= 0, axis=1)
     if not ok.any():
-        return z
+        return z, spread
     un, rn = u[nb[ok]], r[nb[ok]]  # (m, k, 3), (m, k)
     w = rn**4
     scale = w.mean(axis=1)
@@ -218,7 +246,55 @@ def standardised_residuals(p: F64, o: F64, t: F64 | None) -> F64:
     zo = (1.0 / ro - np.einsum("ni,ni->n", g, uo)) * ro**2 / np.sqrt(1.0 + lev)
     zo[lev > MAX_LEVERAGE] = np.nan
     z[ok] = zo
-    return z
+    res_nb = (1.0 / rn - np.einsum("ni,nki->nk", g, un)) * rn**2  # (m, k) metres
+    dof = max(un.shape[1] - 3, 1)
+    spread[ok] = np.sqrt(np.sum(w * res_nb**2, axis=1) / np.sum(w, axis=1) * un.shape[1] / dof)
+    if t is not None:
+        spread = beam_neighbour_max(spread, u, t)
+    return z, spread
+
+
+def beam_neighbour_max(spread: F64, u: F64, t: F64) -> F64:
+    """(n,) each point's ``spread`` (n,) or that of the points next to it in elevation in
+    its column (the beams above and below: u (n, 3) unit directions, t (n,) times),
+    whichever is larger (NaN counts as none): a kink running across the scan lines is
+    often seen better by the next beam's neighbours. Unchanged for one point per
+    column (a rosette)."""
+    col = scan_columns(t)
+    if col is None or col.max() + 1 > 0.5 * len(t):
+        return spread
+    el = np.arcsin(np.clip(u[:, 2], -1.0, 1.0))
+    order = np.lexsort((el, col))
+    sp, cc = spread[order], col[order]
+    out = sp.copy()
+    same = cc[1:] == cc[:-1]
+    out[1:] = np.where(same, np.fmax(out[1:], sp[:-1]), out[1:])
+    out[:-1] = np.where(same, np.fmax(out[:-1], sp[1:]), out[:-1])
+    res = np.empty_like(out)
+    res[order] = out
+    return res
+
+
+def planar_core_sigma(z: F64, spread: F64) -> float:
+    """:func:`core_sigma` of the ``z`` (n,) whose neighbours' ``spread`` (n,) is below
+    ``PLANAR_SPREAD`` times the estimate (module docstring, step 3), iterated from the
+    points of the flattest ``START_SHARE`` of neighbourhoods (from all of them when
+    those are too few): from above, the kinks a large estimate lets in would hold it
+    there. NaN with fewer than ``MIN_NOISE_POINTS`` chosen."""
+    flat = spread <= np.quantile(spread, START_SHARE) if len(spread) else spread > 0
+    sigma = core_sigma(z[flat])
+    if not np.isfinite(sigma):
+        sigma = core_sigma(z)
+    chosen = flat
+    for _ in range(PLANAR_ROUNDS):
+        if not np.isfinite(sigma):
+            break
+        now = spread < PLANAR_SPREAD * sigma
+        if np.array_equal(now, chosen):
+            break  # the same points: the same estimate
+        chosen = now
+        sigma = core_sigma(z[chosen])
+    return sigma
 
 
 def core_sigma(z: F64) -> float:
@@ -236,9 +312,12 @@ def core_sigma(z: F64) -> float:
         l1 = (1.0 - eps) / s1 * np.exp(-0.5 * z2 / s1**2)
         l2 = eps / s2 * np.exp(-0.5 * z2 / s2**2)
         w = l1 / np.maximum(l1 + l2, 1e-300)
+        last = s1
         s1 = max(float(np.sqrt(np.sum(w * z2) / max(w.sum(), 1e-12))), 1e-9)
         s2 = max(float(np.sqrt(np.sum((1.0 - w) * z2) / max((1.0 - w).sum(), 1e-12))), 2 * s1)
         eps = float(np.clip(1.0 - w.mean(), 1e-6, 1.0 - 1e-6))
+        if abs(s1 - last) <= EM_TOLERANCE * s1:
+            break
     return s1
 
 

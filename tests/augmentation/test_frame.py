@@ -65,13 +65,6 @@ def _object_scene(plan, frame: int) -> o3d.t.geometry.RaycastingScene:
     return scene
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="renderer.lidar_noise still overestimates the Pandar near the track bed: its "
-    "estimates are 1.15-1.27x the true 2 cm here (the sleeper/crib steps of 2.5 cm are "
-    "at the noise's scale), the object points' spread 1.25x; Livox 1.03-1.1x; the bound "
-    "stays",
-)
 def test_object_points_scatter_like_the_real_surface(noisy_run) -> None:
     """Range residual of the object points against the mesh (along each point's own ray):
     per sensor its std is within [0.8, 1.25] of the real points' known range noise."""
