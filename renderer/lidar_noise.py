@@ -278,14 +278,13 @@ def beam_neighbour_max(spread: F64, u: F64, t: F64) -> F64:
 def planar_core_sigma(z: F64, spread: F64) -> float:
     """:func:`core_sigma` of the ``z`` (n,) whose neighbours' ``spread`` (n,) is below
     ``PLANAR_SPREAD`` times the estimate (module docstring, step 3), iterated from the
-    points of the flattest ``START_SHARE`` of neighbourhoods (from all of them when
-    those are too few): from above, the kinks a large estimate lets in would hold it
+    points of the flattest ``START_SHARE`` of neighbourhoods (at least the flattest
+    ``MIN_NOISE_POINTS``): from above, the kinks a large estimate lets in would hold it
     there. NaN with fewer than ``MIN_NOISE_POINTS`` chosen."""
-    flat = spread <= np.quantile(spread, START_SHARE) if len(spread) else spread > 0
-    sigma = core_sigma(z[flat])
-    if not np.isfinite(sigma):
-        sigma = core_sigma(z)
-    chosen = flat
+    n_start = min(max(int(START_SHARE * len(z)), MIN_NOISE_POINTS), len(z))
+    chosen = np.zeros(len(z), bool)
+    chosen[np.argsort(spread, kind="stable")[:n_start]] = True
+    sigma = core_sigma(z[chosen])
     for _ in range(PLANAR_ROUNDS):
         if not np.isfinite(sigma):
             break
