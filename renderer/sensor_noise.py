@@ -169,6 +169,29 @@ def edge_sigma_px(
     return out
 
 
+#: Rows per ``cv2.remap`` call: OpenCV's maps are limited to 32767 rows and columns.
+REMAP_ROWS = 32000
+
+
+def remap_rows(
+    image: NDArray,
+    mx: NDArray[np.float32],
+    my: NDArray[np.float32],
+    border: int = cv2.BORDER_CONSTANT,
+) -> NDArray[np.float32]:
+    """``cv2.remap`` (bilinear) of ``image`` at maps ``mx``, ``my`` (n, T), n unbounded:
+    in blocks of :data:`REMAP_ROWS` rows (a ring of many edge pixels exceeds OpenCV's
+    limit)."""
+    src = np.asarray(image, np.float32)
+    out = np.empty(mx.shape, np.float32)
+    for i in range(0, len(mx), REMAP_ROWS):
+        out[i : i + REMAP_ROWS] = cv2.remap(
+            src, mx[i : i + REMAP_ROWS], my[i : i + REMAP_ROWS], cv2.INTER_LINEAR,
+            borderMode=border,
+        )  # fmt: skip
+    return out
+
+
 def step_profiles(
     gray: NDArray, points: F64, normals: F64, half_px: float = 6.0, min_contrast: float = 20.0
 ) -> tuple[NDArray[np.float32], NDArray[np.int64], F64]:
@@ -183,9 +206,7 @@ def step_profiles(
     n = np.asarray(normals, np.float32)
     mx = (p[:, 0:1] + t[None] * n[:, 0:1]).astype(np.float32)
     my = (p[:, 1:2] + t[None] * n[:, 1:2]).astype(np.float32)
-    prof = cv2.remap(g, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(
-        np.float64
-    )
+    prof = remap_rows(g, mx, my, cv2.BORDER_REPLICATE).astype(np.float64)
     k = max(len(t) // 8, 2)
     lo, hi = prof[:, :k].mean(1), prof[:, -k:].mean(1)
     c = hi - lo
@@ -239,9 +260,9 @@ def sharpness_inside_outside(
         nr /= np.maximum(np.linalg.norm(nr, axis=1, keepdims=True), 1e-9)
         pts = np.stack([us, vs], 1).astype(float)
         if across:  # the edge separates the object from the background
-            side = [cv2.remap(a_s, (pts[:, 0] + d * nr[:, 0]).astype(np.float32)[None],
-                              (pts[:, 1] + d * nr[:, 1]).astype(np.float32)[None],
-                              cv2.INTER_LINEAR)[0] for d in (-SIDE_PX, SIDE_PX)]  # fmt: skip
+            side = [remap_rows(a_s, (pts[:, 0:1] + d * nr[:, 0:1]).astype(np.float32),
+                               (pts[:, 1:2] + d * nr[:, 1:2]).astype(np.float32))[:, 0]
+                    for d in (-SIDE_PX, SIDE_PX)]  # fmt: skip
             keep = np.abs(side[1] - side[0]) > SIDE_CONTRAST
             pts, nr = pts[keep], nr[keep]
         return edge_sigma_px(gray, pts, nr)

@@ -206,3 +206,23 @@ def test_silhouette_band_follows_every_side() -> None:
     b_soft = silhouette_band(cv2.GaussianBlur(soft, (5, 5), 1.0))
     b_bin = silhouette_band(cv2.GaussianBlur((soft > 0.5).astype(np.float32), (5, 5), 1.0))
     assert (b_soft != b_bin).sum() <= 0.05 * b_soft.sum()
+
+
+def test_remap_rows_takes_more_points_than_opencv_maps_hold() -> None:
+    """40 000 sample rows (OpenCV's maps stop at 32 767): the same values as one remap of
+    each half."""
+    import cv2
+
+    from renderer.sensor_noise import remap_rows
+
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 255, (50, 60)).astype(np.float32)
+    mx = rng.uniform(0, 59, (40000, 3)).astype(np.float32)
+    my = rng.uniform(0, 49, (40000, 3)).astype(np.float32)
+    out = remap_rows(img, mx, my)
+    assert out.shape == (40000, 3)
+    half = cv2.remap(img, mx[20000:], my[20000:], cv2.INTER_LINEAR)
+    assert np.array_equal(out[20000:], half)
+    # bilinear: a sample at a pixel centre is that pixel
+    exact = remap_rows(img, np.array([[7.0]], np.float32), np.array([[3.0]], np.float32))
+    assert exact[0, 0] == img[3, 7]
