@@ -1418,11 +1418,17 @@ def _block_sizes(pb: Problem) -> list[tuple[str, int, int]]:
     return sizes
 
 
-def redundancy(pb: Problem, x: F64) -> tuple[F64, F64, F64] | None:
+def redundancy(
+    pb: Problem, x: F64, rows: NDArray[np.int64] | None = None
+) -> tuple[F64, F64, F64] | None:
     """Per residual row at ``x``: the normalised residual r, its Huber weight w and its
     redundancy number 1 - h (h: the diagonal of the hat matrix W^1/2 J N^-1 J^T W^1/2,
     N = J^T W J). A row the solution can fit exactly has redundancy 0, a row nothing
-    depends on 1; they sum to rows - parameters. None when N cannot be factorised."""
+    depends on 1; they sum to rows - parameters. None when N cannot be factorised.
+    ``rows``: compute 1 - h for these rows only (NaN elsewhere; negative indices count
+    from the end): the priors' estimates
+    need a few hundred of the thousands of rows, and the full diagonal was most of a
+    100-frame solve's time."""
     r = residuals(x, pb)
     S = _cached_sparsity(pb)
     J = jacobian(x, r, pb, S, _column_groups(pb.n, pb.n_knots, _frame_period(pb)))
@@ -1435,9 +1441,16 @@ def redundancy(pb: Problem, x: F64) -> tuple[F64, F64, F64] | None:
         cf = cho_factor(N, check_finite=False)
     except LinAlgError:
         return None
-    Jd = J.toarray()
-    h = w * np.einsum("ij,ij->i", Jd, cho_solve(cf, Jd.T, check_finite=False).T)
-    return r, w, 1.0 - h
+    if rows is None:
+        Jd = J.toarray()
+        h = w * np.einsum("ij,ij->i", Jd, cho_solve(cf, Jd.T, check_finite=False).T)
+        return r, w, 1.0 - h
+    rows = np.where(rows < 0, rows + len(r), rows)
+    Jr = J.tocsr()[rows].toarray()
+    one_minus_h = np.full(len(r), np.nan)
+    h_rows = w[rows] * np.einsum("ij,ij->i", Jr, cho_solve(cf, Jr.T, check_finite=False).T)
+    one_minus_h[rows] = 1.0 - h_rows
+    return r, w, one_minus_h
 
 
 def variance_factors(
@@ -1513,7 +1526,7 @@ def _rescale_and_solve(pb: Problem, x: F64, health: Health) -> F64:
     wander = pb.sig.estimate_wander and pb.n_knots >= WANDER_MIN_KNOTS
     motion = pb.sig.estimate_motion and pb.n >= 3
     for _ in range(WANDER_ROUNDS if (wander or motion) else 0):
-        red = redundancy(pb, x)
+        red = redundancy(pb, x, _prior_rows(pb, wander, motion))
         if red is None:
             break
         f_wander = wander_factors(pb, x, red) if wander else None
@@ -1611,6 +1624,18 @@ def wander_factors(pb: Problem, x: F64, red: tuple[F64, F64, F64] | None = None)
 MOTION_FACTOR_TOTAL = (0.1, 3.0)
 #: Least redundancy of a rotation axis' smoothness rows to estimate its factor.
 MOTION_MIN_REDUNDANCY = 2.0
+
+
+def _prior_rows(pb: Problem, wander: bool, motion: bool) -> NDArray[np.int64]:
+    """Residual rows whose redundancy the prior estimates read: the INS bias steps (the
+    last rows, as negative indices) and the rotation smoothness rows."""
+    out = []
+    if wander:  # counted from the end (negative): the last rows
+        out.append(np.arange(-(pb.n_knots - 1) * 6, 0))
+    if motion:
+        i0 = _smoothness_offset(pb)
+        out.append(np.arange(i0, i0 + 3 * (pb.n - 2)))
+    return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
 
 
 def _smoothness_offset(pb: Problem) -> int:
