@@ -5,6 +5,15 @@ every process. With ``--concurrency N`` on C cores, N worker processes each runn
 threads oversubscribe the machine: on 2 cores, 2 worker processes ran a batch of 40-frame
 jobs only 1.06-1.29 times faster than one, the evaluate stage taking 2.9-3.6 s per job
 instead of 1.3 (``scripts/bench_throughput.py``); with the caps below, 1.60 times faster.
+
+A lone worker process (``--concurrency 1``) keeps every core: the second thread is worth
+little but not nothing. A 24-variant campaign with one process ran 9.9 variants/min with
+2 threads against 9.4 with 1 (load 2.9-4.7, the bench alone on the machine) and 7.2
+against 5.8 beside other work (load 5.0) (``scripts/bench_campaign_throughput.py
+--one-threads 0,1``). One thread would make the 2-process / 1-process ratio look better
+(1.74 instead of 1.66) by making one process slower. Several worker services on one
+machine, each started with ``--concurrency 1``, do not know of each other: set
+``OMP_NUM_THREADS`` (etc., :data:`THREAD_VARS`) yourself there; a variable set is kept.
 """
 
 from __future__ import annotations
