@@ -1426,9 +1426,8 @@ def redundancy(
     N = J^T W J). A row the solution can fit exactly has redundancy 0, a row nothing
     depends on 1; they sum to rows - parameters. None when N cannot be factorised.
     ``rows``: compute 1 - h for these rows only (NaN elsewhere; negative indices count
-    from the end): the priors' estimates
-    need a few hundred of the thousands of rows, and the full diagonal was most of a
-    100-frame solve's time."""
+    from the end): the priors' estimates need a few hundred of the thousands of rows,
+    and the full diagonal was most of a 100-frame solve's time."""
     r = residuals(x, pb)
     S = _cached_sparsity(pb)
     J = jacobian(x, r, pb, S, _column_groups(pb.n, pb.n_knots, _frame_period(pb)))
