@@ -311,6 +311,25 @@ def test_a_chunk_delivered_again_is_counted_once_and_not_redone(
     assert len(list(folder.rglob("*.png"))) == 2 * 4  # 2 cameras x 4 frames, both chunks
 
 
+def test_stage_deliveries_add_up_across_the_jobs_attempts(
+    tmp_path: Path, seq_folder: Path
+) -> None:
+    """A stage that killed its worker in attempt 1, re-queued by the reaper (attempt 2),
+    keeps its count: the poison bound is per job, not per attempt (CI saw 5 deliveries
+    of a poison prepare when the count started again in the reaper's new attempt)."""
+    from worker.orchestration import state
+
+    settings = _migrated(_settings(tmp_path))
+    owner, seq_id = _owner_and_sequence(settings, seq_folder)
+    job_id = _new_job(settings, owner, seq_id)
+    first = state.mark_running(job_id, settings=settings)
+    assert state.count_stage_delivery(job_id, first, "prepare", settings=settings) == 1
+    second = state.mark_running(job_id, settings=settings)  # the reaper's re-queue
+    assert second == first + 1
+    assert state.count_stage_delivery(job_id, second, "prepare", settings=settings) == 2
+    assert state.count_stage_delivery(job_id, second, "fetch", settings=settings) == 1
+
+
 def test_finish_killed_while_moving_chunk_files_runs_again(
     tmp_path: Path, seq_folder: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

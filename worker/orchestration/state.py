@@ -153,10 +153,13 @@ def check_attempt(job_id: str, attempt: int, *, settings: Settings) -> None:
 
 
 def count_stage_delivery(job_id: str, attempt: int, stage: str, *, settings: Settings) -> int:
-    """Record that ``stage`` of this attempt was delivered; returns how many times it was.
+    """Record that ``stage`` was delivered; returns how many times it was, in all attempts.
 
     A stage task whose worker died is delivered again (``task_reject_on_worker_lost``);
     the count lets the stage refuse a poison input the way :func:`mark_running` does.
+    It spans the job's attempts: when the reaper re-queues a job whose stage killed its
+    worker (an expired lease), the new attempt's deliveries of that stage add to the
+    earlier ones, so a poison input kills at most ``max_deliveries`` workers per stage.
     """
     with session_scope(settings) as s:
         _event(s, job_id, "stage_delivered", attempt, message=stage)
@@ -167,7 +170,6 @@ def count_stage_delivery(job_id: str, attempt: int, stage: str, *, settings: Set
                 .select_from(JobEvent)
                 .where(
                     JobEvent.job_id == job_id,
-                    JobEvent.attempt == attempt,
                     JobEvent.kind == "stage_delivered",
                     JobEvent.message == stage,
                 )
