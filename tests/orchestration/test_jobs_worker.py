@@ -311,9 +311,7 @@ def test_a_chunk_delivered_again_is_counted_once_and_not_redone(
     assert len(list(folder.rglob("*.png"))) == 2 * 4  # 2 cameras x 4 frames, both chunks
 
 
-def test_stage_deliveries_add_up_across_the_jobs_attempts(
-    tmp_path: Path, seq_folder: Path
-) -> None:
+def test_stage_deliveries_add_up_across_the_jobs_attempts(tmp_path: Path, seq_folder: Path) -> None:
     """A stage that killed its worker in attempt 1, re-queued by the reaper (attempt 2),
     keeps its count: the poison bound is per job, not per attempt (CI saw 5 deliveries
     of a poison prepare when the count started again in the reaper's new attempt)."""
