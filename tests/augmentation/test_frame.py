@@ -9,6 +9,7 @@ must point at them, and the same job must write the same clouds.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -20,6 +21,12 @@ from geometry.transforms import invert_T, transform_points
 from renderer.lidar_cast import point_origins
 from worker.augmentation.finish import finish_augmentation
 from worker.augmentation.frame import augment_frames
+from worker.augmentation.lidar_noise import (
+    REMEASURE_M,
+    lidar_noise_near,
+    noise_key_frames,
+    object_spheres,
+)
 from worker.augmentation.plan import plan_augmentation
 from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel, RenderSpec
 from worker.evaluation.object_error import truth_prepared
@@ -169,3 +176,35 @@ def test_without_lidar_noise_the_clouds_keep_their_length(noisy_run, tmp_path: P
     uri = quiet.uris[rec.frame_idx]["lidar"].lstrip("/")
     assert len(read_pcd(tmp_path / uri)) == len(read_pcd(seq / uri))
     assert rec.lidar_noise == {}
+
+
+def test_key_frames_follow_the_objects_motion_in_the_base_frame() -> None:
+    """A new key frame once some object moved more than REMEASURE_M since the last one:
+    at 1 m a frame (a train at 10 m/s, 10 Hz) every 6th frame; a second object that
+    stays put does not hold the first back; a standing train keeps one key."""
+    step = REMEASURE_M / 5.0  # 5 frames reach REMEASURE_M exactly: not more
+    moving = {f: np.array([[40.0 - step * f, 0.0, 1.0], [60.0, 3.0, 1.0]]) for f in range(14)}
+    keys = noise_key_frames(moving)
+    assert sorted(set(keys.values())) == [0, 6, 12]
+    assert all(keys[f] == 6 * (f // 6) for f in range(14))
+    standing = {f: np.array([[40.0, 0.0, 1.0]]) for f in range(30, 40)}
+    assert set(noise_key_frames(standing).values()) == {30}
+
+
+def test_each_frame_gets_its_key_frames_noise(noisy_run) -> None:
+    """The plan measured the noise at each key frame on that frame's own cloud (what
+    lidar_noise_near gives there), and every frame's record carries its key's estimate."""
+    seq, plan, chunk, _, _ = noisy_run
+    assert set(plan.lidar_noise_keys) == set(plan.frames)
+    assert set(plan.lidar_noise) == set(plan.lidar_noise_keys.values())
+    for key, est in plan.lidar_noise.items():
+        cloud = read_pcd(seq / plan.uris[key]["lidar"].lstrip("/"))
+        spheres = object_spheres(plan.objects, plan.T_world_base["lidar"][key], "lidar", key)
+        direct = lidar_noise_near(cloud.fields, plan.lidar_origins, spheres)
+        assert json.dumps({s: dataclasses.asdict(v) for s, v in direct.items()}) == json.dumps(
+            {s: dataclasses.asdict(v) for s, v in est.items()}
+        )
+    for rec in chunk.frames:
+        key = plan.lidar_noise_keys[rec.frame_idx]
+        want = {s: dataclasses.asdict(v) for s, v in plan.lidar_noise[key].items()}
+        assert json.dumps(rec.lidar_noise) == json.dumps(want)

@@ -40,7 +40,6 @@ from renderer.lidar_cast import (
     cast_object,
     point_origins,
 )
-from renderer.lidar_noise import measure_lidar_noise
 from renderer.mesh import ObjectMesh, ProxyMesh
 from renderer.object_render import ObjectRenderer
 from worker.augmentation.annotations import (
@@ -49,6 +48,7 @@ from worker.augmentation.annotations import (
     cuboid_in_lidar,
     mask_outline,
 )
+from worker.augmentation.lidar_noise import bounding_sphere
 from worker.augmentation.plan import NEAR_PLANE_M, Plan, PlannedObject
 from worker.osdar.errors import atomic_write_bytes
 from worker.osdar.images import read_png, write_png
@@ -65,7 +65,6 @@ _RENDERERS: dict[tuple, Any] = {}
 
 # A frame's lidar cast only sees points whose ray passes within the object's bounding
 # sphere grown by this (m): the rest are never handed to the ray caster.
-LIDAR_SPHERE_MARGIN_M = 0.05
 
 
 # Exposure of the front cameras (s, composite's default) and the motion blur cap (px).
@@ -122,7 +121,8 @@ class ObjectFrame:
 class FrameRecord:
     """One frame's result: per object (the plan's order) an :class:`ObjectFrame`, the
     lidar rays cast, per-stage seconds and the lidar noise the object points got
-    (:func:`lidar_noise_near`: {sensor_index: {range_sigma_m, dropout, points, rings}}).
+    (its key frame's, :mod:`.lidar_noise`: {sensor_index: {range_sigma_m, dropout, points,
+    rings}}).
     ``annotation``, ``cameras`` and ``lidar_points`` are the first object's
     (single-object readers)."""
 
@@ -434,32 +434,6 @@ def _intensity_scale(fields: dict[str, NDArray]) -> dict[int, float] | float:
     return out
 
 
-def lidar_noise_near(
-    fields: dict[str, NDArray],
-    origins: dict | F64,
-    spheres: list[tuple[F64, float]],
-) -> dict[int, LidarNoise]:
-    """The real cloud's range noise and dropout per sensor_index around the objects.
-
-    spheres : per object its bounding sphere (centre (3,), radius) in the base frame;
-    :func:`renderer.lidar_noise.measure_lidar_noise` measures each one's shell, and
-    with several objects a sensor gets the median of its finite estimates (points
-    summed, rings the most found).
-    """
-    per = [measure_lidar_noise(fields, origins, c, r) for c, r in spheres]
-    out: dict[int, LidarNoise] = {}
-    for s in sorted({k for est in per for k in est}):
-        got = [est[s] for est in per if s in est]
-        sig = [g.range_sigma_m for g in got if np.isfinite(g.range_sigma_m)]
-        out[s] = LidarNoise(
-            float(np.median(sig)) if sig else float("nan"),
-            float(np.median([g.dropout for g in got])),
-            sum(g.points for g in got),
-            max(g.rings for g in got),
-        )
-    return out
-
-
 def _noise_arguments(
     fields: dict[str, NDArray], noise: dict[int, LidarNoise] | None
 ) -> dict[str, Any]:
@@ -509,14 +483,14 @@ def cast_frame_lidar(
     """The object cast into one cloud, only over the points near it.
 
     noise : per sensor_index the range noise and dropout the object points get (e.g.
-    :func:`lidar_noise_near`); None: exactly on the surface, none dropped. seed : the
-    noise's draw (the same seed, the same cloud).
+    :func:`.lidar_noise.lidar_noise_near`); None: exactly on the surface, none dropped.
+    seed : the noise's draw (the same seed, the same cloud).
 
     Returns (new fields or None when no point moved, sorted object point indices in the
     new fields, number of candidate rays).
     """
 
-    centre, radius = _bounding_sphere(mesh, T_base_obj)
+    centre, radius = bounding_sphere(mesh, T_base_obj)
     xyz = np.stack([np.asarray(fields[k]) for k in "xyz"], axis=1)
     if isinstance(origins, dict):
         o = point_origins(fields, origins)
@@ -542,12 +516,6 @@ def _intensity_scale_for(full: dict[str, NDArray], sub: dict[str, NDArray]) -> A
     return s
 
 
-def _bounding_sphere(mesh: ObjectMesh, T_base_obj: F64) -> tuple[F64, float]:
-    b = mesh.bounds
-    centre = transform_points(T_base_obj, (0.5 * (b[0] + b[1]))[None])[0]
-    return centre, 0.5 * float(np.linalg.norm(b[1] - b[0])) + LIDAR_SPHERE_MARGIN_M
-
-
 def cast_frame_lidar_objects(
     fields: dict[str, NDArray],
     meshes: list[ObjectMesh],
@@ -570,7 +538,7 @@ def cast_frame_lidar_objects(
     o = point_origins(fields, origins) if isinstance(origins, dict) else np.asarray(origins, float)
     cand_parts = []
     for m, T in zip(meshes, T_base_objs, strict=True):
-        centre, radius = _bounding_sphere(m, T)
+        centre, radius = bounding_sphere(m, T)
         cand_parts.append(lidar_candidates(xyz, o, centre, radius))
     cand = np.unique(np.concatenate(cand_parts)) if cand_parts else np.zeros(0, np.int64)
     if len(cand) == 0:
@@ -618,11 +586,12 @@ def _lidar_frame(
     t: dict[str, float],
     noise_out: dict[int, dict[str, float]],
 ) -> tuple[list[list[int]] | None, int, bool]:
-    """read -> noise near the objects -> cast -> write for one cloud; returns (per
+    """read -> cast with the key frame's noise -> write for one cloud; returns (per
     object its point indices, None when no point moved; candidates; written). The
-    noise estimate goes into ``noise_out`` ({sensor_index: LidarNoise as a dict}; none
-    when the spec's ``render.lidar_noise`` is off); the noise's draw is seeded with the
-    frame number (the same job, the same clouds)."""
+    noise used (the plan's estimate at the frame's key frame, :mod:`.lidar_noise`) goes
+    into ``noise_out`` ({sensor_index: LidarNoise as a dict}; none when the spec's
+    ``render.lidar_noise`` is off); the noise's draw is seeded with the frame number (the
+    same job, the same clouds)."""
 
     assert plan.lidar_origins is not None and plan.lidar_stream is not None
     stream = plan.lidar_stream
@@ -633,12 +602,8 @@ def _lidar_frame(
     T_base_world = invert_T(plan.T_world_base[stream][frame])
     meshes = [o.mesh(stream, frame, full=True) for o in plan.objects]
     T_base_objs = [T_base_world @ o.pose(stream, frame) for o in plan.objects]
-    spheres = [_bounding_sphere(m, T) for m, T in zip(meshes, T_base_objs, strict=True)]
-    noise = (
-        lidar_noise_near(cloud.fields, plan.lidar_origins, spheres)
-        if plan.spec.render.lidar_noise
-        else None
-    )
+    key = plan.lidar_noise_keys.get(frame)
+    noise = plan.lidar_noise.get(key) if key is not None else None
     noise_out.update({s: dataclasses.asdict(v) for s, v in (noise or {}).items()})
     t["lidar_noise"] += time.perf_counter() - tic
     tic = time.perf_counter()

@@ -11,9 +11,10 @@ from __future__ import annotations
 import json
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,11 +24,12 @@ from geometry.transforms import transform_points
 from renderer.assets import MeshError, build_obstacle, choose_detail, load_user_mesh, simplify
 from renderer.assets.lod import FACES_PER_PX
 from renderer.assets.walk_cycle import WALKERS, gait_phase_of, gait_pose
-from renderer.lidar_cast import origins_from_json
+from renderer.lidar_cast import LidarNoise, origins_from_json
 from renderer.lighting import Lighting, estimate_lighting, sun_dir_enu
 from renderer.mesh import ObjectMesh, ProxyMesh
 from worker.augmentation.confidence import placement_bounds
 from worker.augmentation.gauge import GaugeLabel, gauge_labels, gauge_labels_moving
+from worker.augmentation.lidar_noise import plan_lidar_noise
 from worker.augmentation.motion import MovingPoses, moving_poses
 from worker.augmentation.placement import (
     RAIL_HEIGHT_ABOVE_BED,
@@ -118,6 +120,9 @@ class Plan:
     objects : the objects (:class:`PlannedObject`, at least one); proxies : world frame.
     lights, pixel_offsets : per camera; speed_mps : frame -> vehicle speed.
     lidar_origins : {sensor_index: (3,)} or (3,) base-frame ray origins, None: no lidar.
+    lidar_noise_keys : frame -> the key frame whose lidar noise it uses; lidar_noise : key
+    frame -> {sensor_index: LidarNoise} (both empty when the spec's render.lidar_noise is
+    off or there is no lidar: :mod:`.lidar_noise`).
 
     ``T_world_obj``, ``obj_full``, ``obj_render``, ``obj_class``, ``placement``,
     ``gauge`` and ``placement_bounds`` are the first object's (single-object readers).
@@ -138,6 +143,8 @@ class Plan:
     speed_mps: dict[int, float]
     lidar_origins: dict[int, F64] | F64 | None
     labels_name: str
+    lidar_noise_keys: dict[int, int] = field(default_factory=dict)
+    lidar_noise: dict[int, dict[int, LidarNoise]] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
@@ -488,17 +495,34 @@ def _render_offsets(
     return offsets
 
 
-def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) -> Plan:
-    """Everything frame-independent (module docstring). Raises AugmentError /
-    PlacementError with a message saying what and where."""
+class _Parts(NamedTuple):
+    """What :func:`_plan_objects` gives the plan."""
 
-    timings: dict[str, float] = {}
-    warnings: list[str] = []
+    planned: list[PlannedObject]
+    proxies: ProxyMesh
+    origins: dict[int, F64] | F64 | None
+    offsets: dict[str, tuple[float, float]]
+    noise_keys: dict[int, int]
+    noise: dict[int, dict[int, LidarNoise]]
+
+
+def _timed_lights(
+    spec: AugmentSpec, prepared: Any, seq: Any, view: _Opened, warnings: list[str]
+) -> tuple[dict[str, Lighting], float]:
     tic = time.perf_counter()
-    seq = sequence(seq_folder)
-    view = _open(seq, spec, prepared.track, warnings)
-    timings["open"] = time.perf_counter() - tic
+    return _lights(spec, prepared, seq, view, warnings), time.perf_counter() - tic
 
+
+def _plan_objects(
+    seq_folder: str | Path,
+    spec: AugmentSpec,
+    prepared: Any,
+    view: _Opened,
+    warnings: list[str],
+    timings: dict[str, float],
+) -> _Parts:
+    """The objects loaded, placed and planned, the proxies, the lidar origins, the render
+    offsets and the lidar noise at key frames (the plan's parts that need the objects)."""
     tic = time.perf_counter()
     objs = []
     for i, so in enumerate(spec.scene_objects):
@@ -514,10 +538,6 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
     warnings += _footprints_overlap(objs, placed)
     timings["placement"] = time.perf_counter() - tic
 
-    tic = time.perf_counter()
-    lights = _lights(spec, prepared, seq, view, warnings)
-    timings["lighting"] = time.perf_counter() - tic
-
     offsets = _render_offsets(spec, prepared, view.cams, warnings)
     origins = _lidar_origins(spec) if view.lidar_stream is not None else None
     tic = time.perf_counter()
@@ -526,6 +546,40 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
         for i, (so, obj, pl) in enumerate(zip(spec.scene_objects, objs, placed, strict=True))
     ]
     timings["objects"] = time.perf_counter() - tic
+    tic = time.perf_counter()
+    noise_keys: dict[int, int] = {}
+    noise: dict[int, dict[int, LidarNoise]] = {}
+    if origins is not None and view.lidar_stream is not None and spec.render.lidar_noise:
+        noise_keys, noise = plan_lidar_noise(
+            seq_folder, view.uris, view.lidar_stream, view.frames, planned,
+            view.poses[view.lidar_stream], origins,
+        )  # fmt: skip
+    timings["lidar_noise"] = time.perf_counter() - tic
+    return _Parts(planned, proxies, origins, offsets, noise_keys, noise)
+
+
+def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) -> Plan:
+    """Everything frame-independent (module docstring). Raises AugmentError /
+    PlacementError with a message saying what and where."""
+
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
+    tic = time.perf_counter()
+    seq = sequence(seq_folder)
+    view = _open(seq, spec, prepared.track, warnings)
+    timings["open"] = time.perf_counter() - tic
+
+    # the lighting (decoding each camera's first image) in a thread beside the objects,
+    # the placement and the lidar noise: the plan is the job's serial part
+    light_warnings: list[str] = []
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="plan-lighting") as ex:
+        lighting = ex.submit(_timed_lights, spec, prepared, seq, view, light_warnings)
+        planned, proxies, origins, offsets, noise_keys, noise = _plan_objects(
+            seq_folder, spec, prepared, view, warnings, timings
+        )
+        lights, timings["lighting"] = lighting.result()
+    warnings += light_warnings
+
     for po in planned:
         log.info(
             "plan: %s at %s (%s), %d/%d faces (%.0f px high at most)%s",
@@ -550,6 +604,8 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
         speed_mps=_speeds(prepared.track, view.lidar_times),
         lidar_origins=origins,
         labels_name=seq.labels_path.name,
+        lidar_noise_keys=noise_keys,
+        lidar_noise=noise,
         timings=timings,
         warnings=warnings,
         info={

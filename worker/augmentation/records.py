@@ -31,6 +31,7 @@ import numpy as np
 from pydantic import BaseModel, ValidationError
 
 from geometry.camera import CameraModel
+from renderer.lidar_cast import LidarNoise
 from renderer.lighting import Lighting
 from renderer.mesh import Material, ObjectMesh, ProxyMesh
 from worker.augmentation.annotations import CameraView, FrameAnnotation
@@ -59,6 +60,7 @@ ALLOWED: dict[str, type] = {
         ProxyMesh,
         Lighting,
         GaugeLabel,
+        LidarNoise,
         ChunkResult,
         FrameRecord,
         ObjectFrame,
