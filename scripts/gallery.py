@@ -136,6 +136,23 @@ def _capped(box: tuple[int, int, int, int], size: int) -> tuple[int, int, int, i
     return u0, v0, u1, v1
 
 
+def asset_entries(assets: list[str]) -> dict[str, tuple[dict, str]]:
+    """``--asset FILE[,key=value...]`` entries: each file at yaw 0 and 180, 20 m ahead."""
+    out: dict[str, tuple[dict, str]] = {}
+    for text in assets:
+        path, *pairs = text.split(",")
+        p = Path(path)
+        if not p.is_file():
+            raise SystemExit(f"--asset {path}: no such file")
+        obj: dict = {"mesh_path": str(p), "file_type": p.suffix.lstrip(".").lower()}
+        for pair in pairs:
+            k, _, v = pair.partition("=")
+            obj[k] = v if k in ("up", "name") else float(v)
+        for yaw in (0, 180):
+            out[f"{p.stem.lower()}_yaw{yaw}"] = (obj, f"s=20,offset=0,yaw={yaw}")
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sequence", type=Path)
@@ -146,6 +163,13 @@ def main() -> int:
     ap.add_argument("--max-size", type=int, default=1024, help="crop at most this (px), 1:1")
     ap.add_argument("--only", nargs="*", default=None, help="entry names")
     ap.add_argument("--cache-dir", type=Path, default=Path("/tmp/osdar_bench_cache"))
+    ap.add_argument(
+        "--asset", action="append", default=[], metavar="FILE[,key=value...]",
+        help="a mesh file of your own (e.g. a downloaded sample asset), rendered facing "
+        "along the track (yaw 0) and facing the train (yaw 180) instead of the built-in "
+        "entries; object fields after commas, e.g. Horse.glb,mesh_scale=0.01,"
+        "animation_time_s=0.4",
+    )  # fmt: skip
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
@@ -158,7 +182,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="osdar_gallery_") as tmp:
         crate = Path(tmp) / "crate.glb"
         crate.write_bytes(crate_glb())
-        for name, (obj, place) in ENTRIES.items():
+        entries = asset_entries(args.asset) if args.asset else ENTRIES
+        for name, (obj, place) in entries.items():
             if args.only and name not in args.only:
                 continue
             fields = {k: (str(crate) if v == "CRATE" else v) for k, v in obj.items()}
@@ -196,6 +221,8 @@ def main() -> int:
     for name, obj, place, box in rows:
         desc = ", ".join(f"{k}={v}" for k, v in obj.items() if k != "mesh_path")
         lines.append(f"| ![{name}]({name}.png) | {desc} | {place} | {box} |")
+    if args.asset:  # a user's own files: crops only, no gallery index
+        return 0
     index = args.out / "index.md"
     if args.only and index.is_file():  # keep the other entries' rows
         old = [ln for ln in index.read_text().splitlines()[4:]
