@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from worker.preparation.localization.hat import hat_variances
+from worker.preparation.localization.hat import hat_variances, relative_difference
+from worker.preparation.localization.ins_wander import robust_rms
 
 MDEG = np.pi / 180.0 / 1000.0
 
@@ -31,17 +32,26 @@ def _sources(
 
 def test_two_sources_biased_alike_do_not_make_the_third_look_bad() -> None:
     """A good INS (white 4 mdeg, no bias), an odometry drifting by +11 mdeg over the lag and
-    ground pairs off by +4 mdeg (the klein_flottbek bogie cell's figures): the INS's
-    error is its white noise. Before, the product of its two mean disagreements (11 x 4)
-    read as 6.6 mdeg of error and its slow attitude was given up for the ground's."""
+    ground pairs off by +4 mdeg (the klein_flottbek bogie cell's figures). The formula
+    read the product of the INS's two mean disagreements (11 x 4 mdeg^2) as its own; now
+    its shared part is at most the smaller disagreement, the ground's 4 mdeg (what it
+    would be were the ground unbiased): the INS at most sqrt(4^2 + 4^2) = 5.7 mdeg plus
+    sampling noise, where the bare formula gives 7-8."""
     rng = np.random.default_rng(3)
     rel = _sources(rng, 50, {"ins": (0.0, 4.0), "odometry": (11.0, 12.0), "ground": (4.0, 9.0)})
     v = hat_variances(rel)
     assert v is not None
     ins = np.sqrt(v["ins"]) / MDEG
-    assert np.all(ins < 5.5), ins  # its white 4 mdeg, with the hat's sampling noise
-    # the drifting odometry is still found: its bias is its smaller disagreement (7 mdeg
-    # to the ground's +4) on top of its scatter
+    assert np.all(ins < 6.5), ins
+    # the bare formula on the same pairs (RMS about zero, as before)
+    ms = {
+        (a, b): robust_rms(relative_difference(rel[a], rel[b])[:, :2]) ** 2
+        for a, b in (("ins", "odometry"), ("ins", "ground"), ("odometry", "ground"))
+    }
+    bare = np.sqrt(0.5 * (ms["ins", "odometry"] + ms["ins", "ground"] - ms["odometry", "ground"]))
+    assert np.all(bare / MDEG > ins + 1.0), (bare / MDEG, ins)
+    # the drifting odometry is still found: its smaller disagreement (7 mdeg to the
+    # ground) on top of its scatter
     odo = np.sqrt(v["odometry"]) / MDEG
     assert np.all(odo > 10.0), odo
 

@@ -7,17 +7,15 @@ each one follows without any ground truth (the "three-cornered hat" of clock met
 roll and pitch between two frames, measured by the INS, the lidar odometry and the ground
 both frames see (:mod:`~worker.preparation.localization.ground_pairs`).
 
-The formula holds for errors that scatter independently from pair to pair. What all the
-pairs share - a source's bias over the lag for the whole sequence (an odometry whose
-roll drifts at a steady rate, ground pairs read in a cant transition) - is a single
-sample, not a scatter: in the formula it enters as the product of a source's two mean
-disagreements, and two other sources biased the same way make it large (a train on
-bogies, klein_flottbek, 60 frames: odometry +11 and ground +4 mdeg over 10 frames, a
-good INS read as 6.6 mdeg of roll error over the lag where it had none, and the fused
-roll followed the ground's bias). So the scatter's hat is taken about the differences'
-medians, and each source's shared part separately: its smaller mean disagreement with
-the other two where it differs from both the same way (exact when the closer one is
-unbiased), none where its mean lies between theirs (it is not the one that stands out).
+With the differences' means (over the pairs, which share them) the formula splits into
+the hat of their scatter about the means and, for source ``a``, the product of its two
+mean disagreements ``m_ab m_ac``: exact when the other two are unbiased. Where ``a``
+differs from both the same way, two other sources biased alike make that product large
+(a train on bogies, klein_flottbek, 60 frames: odometry +11 and ground +4 mdeg of roll
+over 10 frames, a good INS read as 6.6 mdeg of roll error over the lag where its error
+was its white noise, and the fused roll over 30 frames followed the ground's bias); then
+the shared part is taken as the smaller disagreement squared, exact when only the
+closer of the other two is unbiased (never more than the product).
 """
 
 from __future__ import annotations
@@ -26,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from worker.preparation.localization.ins_wander import robust_rms
+from worker.preparation.localization.ins_wander import inliers
 
 F64 = NDArray[np.float64]
 
@@ -43,9 +41,9 @@ def hat_variances(rel: dict[str, F64], axes: slice = slice(0, 2)) -> dict[str, F
     """Per source, the error variance (rad^2) about each of ``axes`` (default roll, pitch).
 
     rel : three sources' (m, 3, 3) relative rotations of the same m frame pairs.
-    Returns None with fewer than MIN_PAIRS pairs. The scatter's variances are floored at
-    0 (sampling noise can make the formula negative for a very good source); each
-    source's shared part (module docstring) is added as its square.
+    Returns None with fewer than MIN_PAIRS pairs. Variances are floored at 0 (sampling
+    noise can make the formula negative for a very good source); a source's part shared
+    by all pairs is counted as the module docstring says.
     """
     names = list(rel)
     if len(names) != 3:
@@ -56,14 +54,17 @@ def hat_variances(rel: dict[str, F64], axes: slice = slice(0, 2)) -> dict[str, F
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
             d = relative_difference(rel[a], rel[b])[:, axes]
-            m = np.median(d, axis=0)
-            v[a, b] = v[b, a] = robust_rms(d - m) ** 2
+            keep = inliers(d)  # as robust_rms: a few jumps do not count
+            n = np.maximum(keep.sum(axis=0), 1)
+            m = np.sum(np.where(keep, d, 0.0), axis=0) / n
+            v[a, b] = v[b, a] = np.sum(np.where(keep, d * d, 0.0), axis=0) / n - m * m
             mean[a, b], mean[b, a] = m, -m
     out = {}
     for a in names:
         b, c = (x for x in names if x != a)
-        scatter = np.maximum(0.5 * (v[a, b] + v[a, c] - v[b, c]), 0.0)
-        stands_out = np.sign(mean[a, b]) == np.sign(mean[a, c])
-        shared = np.where(stands_out, np.minimum(np.abs(mean[a, b]), np.abs(mean[a, c])), 0.0)
-        out[a] = scatter + shared**2
+        scatter = 0.5 * (v[a, b] + v[a, c] - v[b, c])
+        product = mean[a, b] * mean[a, c]
+        smaller = np.minimum(np.abs(mean[a, b]), np.abs(mean[a, c]))
+        shared = np.where(product > 0.0, smaller**2, product)
+        out[a] = np.maximum(scatter + shared, 0.0)
     return out

@@ -44,13 +44,21 @@ class InsWander:
     pairs: int
 
 
+def inliers(x: F64) -> NDArray[np.bool_]:
+    """(m, k) the values of each column of ``x`` (m, k) within ``OUTLIER_SIGMAS`` robust
+    sigmas (MAD about zero) of zero: those :func:`robust_rms` keeps."""
+    a = np.abs(np.asarray(x, dtype=np.float64))
+    limit = OUTLIER_SIGMAS * median_abs_deviation(a, axis=0, center=zero_centre, scale="normal")
+    keep: NDArray[np.bool_] = a <= limit[None, :]
+    return keep
+
+
 def robust_rms(x: F64) -> F64:
     """(k,) RMS about zero of each column of ``x`` (m, k), leaving out the values beyond
     ``OUTLIER_SIGMAS`` robust sigmas (a few GNSS jumps do not count; a steady drift, whose
     values are all alike, is measured as it is)."""
     a = np.abs(np.asarray(x, dtype=np.float64))
-    limit = OUTLIER_SIGMAS * median_abs_deviation(a, axis=0, center=zero_centre, scale="normal")
-    keep = a <= limit[None, :]
+    keep = inliers(a)
     return np.sqrt(np.sum(np.where(keep, a * a, 0.0), axis=0) / np.maximum(keep.sum(axis=0), 1))
 
 
