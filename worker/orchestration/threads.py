@@ -1,7 +1,7 @@
 """Thread caps for worker processes: one core's worth of threads per process.
 
-numpy's BLAS, OpenMP (open3d, KISS-ICP) and Mesa's llvmpipe each start a thread per core in
-every process. With ``--concurrency N`` on C cores, N worker processes each running C
+numpy's BLAS, OpenMP (open3d, KISS-ICP), OpenCV and Mesa's llvmpipe each start a thread per
+core in every process. With ``--concurrency N`` on C cores, N worker processes each running C
 threads oversubscribe the machine: on 2 cores, 2 worker processes ran a batch of 40-frame
 jobs only 1.06-1.29 times faster than one, the evaluate stage taking 2.9-3.6 s per job
 instead of 1.3 (``scripts/bench_throughput.py``); with the caps below, 1.60 times faster.
@@ -27,6 +27,14 @@ THREAD_VARS = (
     "MKL_NUM_THREADS",
     "NUMEXPR_NUM_THREADS",
     "LP_NUM_THREADS",
+    # OpenCV's own pool (pthreads) reads none of the above. Uncapped, each of 2 worker
+    # processes on 2 cores kept a second OpenCV thread that the frames' cv2 calls woke
+    # 120-170 times a second for almost no work (0.01 CPU s in 5 s) and that waited
+    # 1.7-2.1 s of those 5 s for a CPU (schedstat, load 4-5); capped, the children's
+    # threads besides the main and llvmpipe ones waited 0.30-0.40 threads on average over
+    # a campaign instead of 1.19-1.41 (scripts/bench_campaign_throughput.py's thread
+    # split). CPU per variant did not measurably change (3.57-3.70 s against 3.69-3.74).
+    "OPENCV_FOR_THREADS_NUM",
 )
 
 
