@@ -12,7 +12,12 @@ to its end (the manifest written). Variants per minute for each worker count, th
 ratio (goal >= 1.8), the busy cores, the worker threads' wait for a CPU (Linux schedstat:
 what the machine's other work took), the stage seconds per variant, the worker processes'
 share of the time spent inside a stage (the rest: dispatch, waits between stages, idle
-processes), and the load averages (the machine is shared). With one worker process,
+processes), and the load averages (the machine is shared). Over each campaign, the cores
+each kind of process used (``CpuSplit``, sampled once a second from /proc: the worker
+children, the celery parent, this process's polling thread and its in-process API, Redis,
+and "other": the machine's busy time less those - other sessions' work), the worker
+children's threads by name (on a CPU / runnable waiting for one), their main threads'
+sleep, and the tasks' counts and seconds from the worker's log. With one worker process,
 ``--singles`` of the campaign's variants are then run again one at a time as jobs of their
 own (the variant's job spec, POST /v1/jobs): the per-variant time, a job's first stage
 to its published result, in the campaign (median over its variants) against as a single
@@ -39,6 +44,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import shutil
 import signal
 import statistics
@@ -55,6 +61,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scripts.service_bench import (
     TERMINAL,
+    CpuSplit,
     Service,
     load_averages,
     service,
@@ -107,6 +114,9 @@ class Run:
     single_work_s: list[float] = field(default_factory=list)
     paired_elapsed_s: list[float] = field(default_factory=list)  # the singles' variants, in it
     singles_load: str = ""
+    split: str = ""  # cores by process kind over the campaign (CpuSplit)
+    thread_split: str = ""  # the worker children's threads by name
+    task_s: dict[str, tuple[int, float]] = field(default_factory=dict)  # from the worker log
     single_stages: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -192,10 +202,21 @@ def run_campaign(
         svc.wait_jobs([svc.post("/v1/jobs", warm_spec)["id"] for _ in range(workers)], 900)
 
         spy = _profile(svc.proc, args.profile) if workers == 2 else None
-        cpu0, (on0, wait0), t0 = svc.cpu_s(), svc.sched_s(), time.perf_counter()
-        c = svc.post("/v1/campaigns", campaign_spec(seq_ids, obstacles, f"bench_w{workers}"))
-        end = _wait_campaign(svc, c["id"], tuple(s for s in (*TERMINAL, "PARTIAL")), 3600)
-        run.wall_s = time.perf_counter() - t0
+        log = svc.proc_log
+        log_at = log.stat().st_size if log.exists() else 0
+        with CpuSplit(svc.proc) as split:
+            cpu0, (on0, wait0), t0 = svc.cpu_s(), svc.sched_s(), time.perf_counter()
+            c = svc.post("/v1/campaigns", campaign_spec(seq_ids, obstacles, f"bench_w{workers}"))
+            end = _wait_campaign(svc, c["id"], tuple(s for s in (*TERMINAL, "PARTIAL")), 3600)
+            run.wall_s = time.perf_counter() - t0
+        run.split = split.line()
+        run.thread_split = ", ".join(f"{n} x{k} {on:.2f} on / {w:.2f} waiting"
+                                     for n, k, on, w in split.threads()[:8])  # fmt: skip
+        run.thread_split += "; main threads {:.2f} on / {:.2f} waiting / {:.2f} sleeping".format(
+            *split.main_threads()
+        )
+        run.thread_split += f"; main + llvmpipe threads wanting a CPU {split.demand():.2f}"
+        run.task_s = _task_seconds(log, log_at)
         run.cores = (svc.cpu_s() - cpu0) / run.wall_s
         on1, wait1 = svc.sched_s()
         run.runqueue_s = wait1 - wait0
@@ -214,6 +235,20 @@ def run_campaign(
         if singles:
             _singles(svc, jobs, run, args.singles)
     return run
+
+
+def _task_seconds(log: Path, offset: int) -> dict[str, tuple[int, float]]:
+    """(count, seconds) of each task that succeeded in the worker log after ``offset``
+    (Celery's "Task <name>[<id>] succeeded in <s>s" lines)."""
+    out: dict[str, tuple[int, float]] = {}
+    with open(log, "rb") as f:
+        f.seek(offset)
+        for line in f.read().decode(errors="replace").splitlines():
+            m = re.search(r"Task osdar_ar\.(\w+)\[[^]]*\] succeeded in ([0-9.]+)s", line)
+            if m:
+                n, sec = out.get(m[1], (0, 0.0))
+                out[m[1]] = (n + 1, sec + float(m[2]))
+    return out
 
 
 def _job_of(variant: dict[str, Any]) -> dict[str, Any]:
@@ -258,11 +293,19 @@ def report(ones: list[Run], two: Run) -> None:
               f"{r.runqueue_s / r.wall_s:.2f} threads waiting for a CPU ({r.load})")  # fmt: skip
         print(f"  stage seconds per variant: {stage_line(r.stages)}; the processes inside a "
               f"stage {100 * r.in_stages:.0f} % of the time")  # fmt: skip
+        print(f"  cores over the campaign: {r.split}")
+        print(f"  the worker children's threads (cores): {r.thread_split}")
+        print("  tasks (count, seconds): " + ", ".join(
+            f"{k} {n} {sec:.1f}" for k, (n, sec) in sorted(r.task_s.items())))  # fmt: skip
     for one in ones:
         ratio = two.per_min / one.per_min
         print(f"throughput ratio 2 / 1 workers ({one.threads_label} in the 1): {ratio:.2f} "
               f"(goal >= 1.8: {'met' if ratio >= 1.8 else 'missed'})")  # fmt: skip
     one = ones[0]
+    if not one.single_elapsed_s:
+        print(f"  the worker's CPU seconds per variant: {one.cpu_per_variant_s:.2f} (1 worker), "
+              f"{two.cpu_per_variant_s:.2f} (2 workers)")  # fmt: skip
+        return
     elapsed, single = statistics.median(one.elapsed_s), statistics.median(one.single_elapsed_s)
     print(f"per-variant time, 1 worker: {elapsed:.2f} s in the campaign (median over its "
           f"variants, each job's first stage to its result) against {single:.2f} s as a single "
@@ -311,7 +354,7 @@ def main() -> int:
         synth = {"frames": args.frames, "scale": args.scale, "lidar_density": 0.2}
         folders = [generate(root / s, SynthConfig(scene=s, **synth)).folder for s in SCENES]
         one_threads = [int(t) for t in args.one_threads.split(",")]
-        ones = [run_campaign(folders, 1, root, args, threads=t, singles=i == 0)
+        ones = [run_campaign(folders, 1, root, args, threads=t, singles=i == 0 and args.singles > 0)
                 for i, t in enumerate(one_threads)]  # fmt: skip
         two = run_campaign(folders, 2, root, args, threads=args.threads)
     finally:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -43,7 +44,7 @@ def thread_env(threads: int) -> dict[str, str]:
         return {}
     n = str(threads)
     return {"OMP_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n, "MKL_NUM_THREADS": n,
-            "LP_NUM_THREADS": n}  # fmt: skip
+            "LP_NUM_THREADS": n, "OPENCV_FOR_THREADS_NUM": n}  # fmt: skip
 
 
 def load_averages() -> str:
@@ -88,6 +89,170 @@ def tree_sched_s(proc: Any) -> tuple[float, float]:
     return on, wait
 
 
+#: Clock ticks per second of /proc/<pid>/stat's utime / stime.
+_HZ = os.sysconf("SC_CLK_TCK")
+
+
+def _proc_stat(path: str) -> tuple[str, float] | None:
+    """(comm, user + system CPU seconds) of ``/proc/<pid>[/task/<tid>]/stat``."""
+    try:
+        text = Path(path).read_text()
+    except OSError:
+        return None
+    head, _, rest = text.rpartition(")")
+    fields = rest.split()  # fields[0] is the state (the stat's 3rd field)
+    return head.split("(", 1)[1], (int(fields[11]) + int(fields[12])) / _HZ
+
+
+def _machine_busy_s() -> tuple[float, float]:
+    """(busy, all) CPU seconds of the machine since boot, all cores (/proc/stat)."""
+    user, nice, system, idle, iowait, irq, softirq, steal = (
+        int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:9]
+    )
+    busy = user + nice + system + irq + softirq + steal
+    return busy / _HZ, (busy + idle + iowait) / _HZ
+
+
+class CpuSplit:
+    """Who had the machine's cores during a window, robust to other work on it: a thread
+    samples every ``interval_s`` the CPU seconds (/proc/<pid>/stat, user + system) of the
+    worker's children, the celery parent, this process (the bench's polling thread apart
+    from the in-process API's threads), Redis, and the machine's busy time (/proc/stat);
+    "other" is the machine's busy time less those (other sessions' work, the kernel).
+    A process that exits between samples keeps its last sample (its last second is lost).
+    """
+
+    def __init__(self, proc: Any, interval_s: float = 1.0) -> None:
+        self.proc = proc
+        self.interval_s = interval_s
+        self.redis = [p.pid for p in psutil.process_iter(["name"])
+                      if (p.info["name"] or "").startswith("redis-server")]  # fmt: skip
+        self._main_tid = threading.get_native_id()
+        self._first: dict[tuple[str, int], float] = {}
+        self._last: dict[tuple[str, int], float] = {}
+        self._threads: dict[tuple[int, int], tuple[str, float, float]] = {}
+        self._threads_last: dict[tuple[int, int], tuple[str, float, float]] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="cpu-split", daemon=True)
+        self._busy0 = self._busy1 = (0.0, 0.0)
+        self._t0 = self._t1 = 0.0
+
+    def _sample(self) -> None:
+        try:
+            children = [c.pid for c in psutil.Process(self.proc.pid).children(recursive=True)]
+        except psutil.NoSuchProcess:
+            children = []
+        seen: dict[tuple[str, int], float] = {}
+        for kind, pids in (("child", children), ("parent", [self.proc.pid]),
+                           ("redis", self.redis)):  # fmt: skip
+            for pid in pids:
+                s = _proc_stat(f"/proc/{pid}/stat")
+                if s is not None:
+                    seen[(kind, pid)] = s[1]
+        me = os.getpid()
+        for task in Path(f"/proc/{me}/task").iterdir():
+            tid = int(task.name)
+            s = _proc_stat(f"{task}/stat")
+            if s is not None:
+                kind = "bench-poll" if tid == self._main_tid else "bench-api"
+                seen[("bench-sampler" if s[0] == "cpu-split" else kind, tid)] = s[1]
+        for pid in children:  # per thread of the worker children (name, CPU, runqueue wait)
+            for task in Path(f"/proc/{pid}/task").glob("*"):
+                s = _proc_stat(f"{task}/stat")
+                try:
+                    wait = int((task / "schedstat").read_text().split()[1]) / 1e9
+                except (OSError, ValueError, IndexError):
+                    continue
+                if s is not None:
+                    key = (pid, int(task.name))
+                    if key not in self._threads and self._t1:  # born in the window
+                        self._threads[key] = (s[0], 0.0, 0.0)
+                    first = self._threads.setdefault(key, (s[0], s[1], wait))
+                    self._threads_last[key] = (s[0], s[1] - first[1], wait - first[2])
+        for key, v in seen.items():
+            if key not in self._first:
+                self._first[key] = 0.0 if self._t1 else v  # born in the window: from 0
+            self._last[key] = v
+        self._t1 = time.perf_counter()
+        self._busy1 = _machine_busy_s()
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            self._sample()
+
+    def __enter__(self) -> CpuSplit:
+        self._t0 = time.perf_counter()
+        self._busy0 = _machine_busy_s()
+        self._sample()
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._sample()
+
+    @property
+    def wall_s(self) -> float:
+        return self._t1 - self._t0
+
+    def cores(self) -> dict[str, float]:
+        """Cores used on average over the window by kind: ``child`` (the worker processes
+        together), ``parent``, ``bench-poll``, ``bench-api``, ``bench-sampler``, ``redis``,
+        ``other`` (the machine's busy time less these) and ``idle``."""
+        out: dict[str, float] = {}
+        for key, last in self._last.items():
+            out[key[0]] = out.get(key[0], 0.0) + (last - self._first[key]) / self.wall_s
+        busy = (self._busy1[0] - self._busy0[0]) / self.wall_s
+        total = (self._busy1[1] - self._busy0[1]) / self.wall_s
+        out["other"] = busy - sum(out.values())
+        out["idle"] = total - busy
+        return out
+
+    def threads(self) -> list[tuple[str, int, float, float]]:
+        """The worker children's threads by name: (name, how many, cores on a CPU, threads
+        runnable waiting for a CPU), summed over the children, busiest first."""
+        by: dict[str, list[float]] = {}
+        for name, on, wait in self._threads_last.values():
+            name = name.rstrip("0123456789:-") or name
+            acc = by.setdefault(name, [0.0, 0.0, 0.0])
+            acc[0] += 1
+            acc[1] += on / self.wall_s
+            acc[2] += wait / self.wall_s
+        return sorted(((n, int(a[0]), a[1], a[2]) for n, a in by.items()), key=lambda x: -x[2])
+
+    def main_threads(self) -> tuple[float, float, float]:
+        """The worker children's main threads (the tasks' code), as threads on average
+        over the window: (on a CPU, runnable waiting for one, neither: sleeping - waiting
+        for a task, I/O, a lock, the llvmpipe thread's rendering). Summed over the
+        children (with 2 children they add up to 2)."""
+        on = wait = 0.0
+        n = 0
+        for (pid, tid), (_, t_on, t_wait) in self._threads_last.items():
+            if pid == tid:
+                on, wait, n = on + t_on, wait + t_wait, n + 1
+        w = self.wall_s
+        return on / w, wait / w, max(0.0, n - (on + wait) / w) if n else 0.0
+
+    def demand(self) -> float:
+        """Threads of the worker children that wanted a CPU (on one or runnable waiting
+        for one) on average: their main threads and their llvmpipe threads (the main
+        thread sleeps while its llvmpipe thread renders). On a machine of their own they
+        would have used at most ``min(cores, demand)`` cores (the waits would turn into
+        CPU time; the sleeps would stay)."""
+        w = self.wall_s
+        wanting = [on + wait for (pid, tid), (name, on, wait) in self._threads_last.items()
+                   if pid == tid or name.startswith("llvmpipe")]  # fmt: skip
+        return sum(wanting) / w
+
+    def line(self) -> str:
+        c = self.cores()
+        order = ("child", "parent", "bench-poll", "bench-api", "bench-sampler", "redis",
+                 "other", "idle")  # fmt: skip
+        names = {"child": "worker processes", "parent": "celery parent"}
+        return ", ".join(f"{names.get(k, k)} {c.get(k, 0.0):.2f}" for k in order)
+
+
 @contextlib.contextmanager
 def database(data: Path, kind: str) -> Iterator[str]:
     """A fresh, migrated database: ``sqlite`` (a file under ``data``) or ``postgres`` (a
@@ -109,6 +274,7 @@ class Service:
     client: Any
     headers: dict[str, str]
     proc: Any
+    proc_log: Path
 
     def post(self, path: str, body: dict[str, Any]) -> dict[str, Any]:
         r = self.client.post(path, json=body, headers=self.headers)
@@ -176,7 +342,7 @@ def service(
                             extra_env=thread_env(threads))  # fmt: skip
         try:
             with TestClient(app) as client:
-                yield Service(settings, client, headers, proc)
+                yield Service(settings, client, headers, proc, log)
         finally:
             stop_worker(proc)
             app.state.engine.dispose()
@@ -199,6 +365,7 @@ def stage_line(stages: dict[str, float]) -> str:
 
 
 __all__ = [
+    "CpuSplit",
     "Service",
     "database",
     "load_averages",
