@@ -4,7 +4,11 @@
 ``inp.options["_odometry"]``) on the frames' clouds. OSDaR23 clouds are already
 motion-compensated into the base frame at the lidar timestamp, so KISS-ICP's deskewing is
 off; NaN points are dropped. KISS-ICP's poses are relative to the first frame; the first
-INS pose (nominal misalignment, an ASSUMPTION) anchors them in the world.
+INS pose (nominal misalignment, an ASSUMPTION) anchors them in the world. Its local map
+takes a frame only once the train has moved on (:data:`MAP_LAG_VOXELS`,
+:class:`~worker.preparation.kiss_process.LaggedKissICP`): on a slow train a map holding the
+frames just before pulled ICP towards their identical lidar pattern, a heading drift of
+about 30 mdeg a frame at 30 % density.
 
 Degeneracy (hard case: a long straight with little structure): for every frame the
 point-to-plane information matrix ``H = sum J J^T``, ``J = [n, p x n]`` of the cloud used
@@ -23,7 +27,6 @@ from typing import Any
 
 import numpy as np
 import open3d as o3d
-from kiss_icp.kiss_icp import KissICP
 from numpy.typing import NDArray
 
 from geometry.poses import PoseTrack
@@ -31,6 +34,7 @@ from worker.preparation.kiss_process import (
     KissProcess,
     KissProcessError,
     kiss_config,
+    make_kiss,
     set_prior,
 )
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
@@ -61,6 +65,22 @@ log = logging.getLogger(__name__)
 MAX_RANGE_M = 100.0
 MIN_RANGE_M = 1.0
 VOXEL_SIZE_M = 0.5
+#: A frame enters KISS-ICP's map once the train is this many voxel sizes away from it
+#: (:class:`~worker.preparation.kiss_process.LaggedKissICP`; option ``odometry_map_lag_m``
+#: in metres overrides it, 0 is KISS-ICP as is): 1.5, KISS-ICP's source voxel (it keeps
+#: one point per 1.5 voxel sizes), so a frame registers against samples taken at least one
+#: source cell away. Measured (heading error at the end, mdeg; without the lag -577 / -909)
+#: on tight_curve (20 frames) / station (35) at 1.5 m/s, density 0.3: lag 0.4 m -37 / -327,
+#: 0.55 m -51 / -54, 0.75 m -67 / -73, 1 m -80 / -86. 1 m withheld the previous frame at
+#: normal speed too (fire_site 0.9 m, switch 0.8 m a frame), 15-20 % more lag-30 rotation
+#: error there; 0.75 m leaves those as they were.
+MAP_LAG_VOXELS = 1.5
+#: ... but only while the predicted step is shorter than this many voxel sizes (a slow
+#: train; option ``odometry_map_fast_step_m`` in metres): at a voxel a frame the previous
+#: frame is a voxel away already. Dense station cells at 0.6 m a frame lost with the lag
+#: (fused anchor error on rgb_highres_center 1.68 -> 2.31 px over 10 frames, 1.88 -> 2.70
+#: over 20).
+MAP_FAST_STEP_VOXELS = 1.0
 #: Ground removal: grid cell (m) and height above the cell's lowest point (m).
 GROUND_CELL_M = COLUMN_M  # 1 m: the ground pairs' columns, one floor serves both
 GROUND_HEIGHT_M = 0.2
@@ -114,13 +134,18 @@ class OdometryRun:
 
 def _kiss_settings(inp: LocalizationInput) -> dict[str, Any]:
     """The KISS-ICP settings of this input's options (:func:`~worker.preparation.
-    kiss_process.kiss_config` turns them into a KISSConfig, here or in the child)."""
+    kiss_process.make_kiss` turns them into a KISS-ICP, here or in the child)."""
+    voxel_size = float(inp.options.get("odometry_voxel_size", VOXEL_SIZE_M))
     return {
         "deskew": False,
         "max_range": float(inp.options.get("odometry_max_range", MAX_RANGE_M)),
         "min_range": float(inp.options.get("odometry_min_range", MIN_RANGE_M)),
-        "voxel_size": float(inp.options.get("odometry_voxel_size", VOXEL_SIZE_M)),
+        "voxel_size": voxel_size,
         "max_num_threads": int(inp.options.get("odometry_threads", 0)),
+        "map_lag_m": float(inp.options.get("odometry_map_lag_m", MAP_LAG_VOXELS * voxel_size)),
+        "map_fast_step_m": float(
+            inp.options.get("odometry_map_fast_step_m", MAP_FAST_STEP_VOXELS * voxel_size)
+        ),
     }
 
 
@@ -211,9 +236,8 @@ def _subsample(p: F64, k: int, rng: np.random.Generator) -> F64:
 class _InProcess:
     """KISS-ICP in this process, with :class:`~.kiss_process.KissProcess`'s interface."""
 
-    def __init__(self, cfg: Any) -> None:
-
-        self.kiss = KissICP(cfg)
+    def __init__(self, settings: dict[str, Any]) -> None:
+        self.kiss = make_kiss(settings)
         self.out: tuple[F64, F64] = (np.eye(4), np.zeros((0, 3)))
 
     def send(self, points: F64, prior_t: F64 | None = None) -> None:
@@ -257,7 +281,7 @@ def run_kiss_icp(inp: LocalizationInput) -> OdometryRun:
         except KissProcessError as exc:
             log.warning("odometry: %s; running KISS-ICP in this process", exc)
             started = time.perf_counter()
-    return _run_frames(inp, _InProcess(kiss_config(settings)), started)
+    return _run_frames(inp, _InProcess(settings), started)
 
 
 def step_priors(inp: LocalizationInput) -> F64 | None:
