@@ -605,8 +605,6 @@ def _lidar_frame(
     key = plan.lidar_noise_keys.get(frame)
     noise = plan.lidar_noise.get(key) if key is not None else None
     noise_out.update({s: dataclasses.asdict(v) for s, v in (noise or {}).items()})
-    t["lidar_noise"] += time.perf_counter() - tic
-    tic = time.perf_counter()
     if len(meshes) == 1:
         new, idx, n_cand = cast_frame_lidar(
             cloud.fields, meshes[0], T_base_objs[0], plan.lidar_origins, noise=noise, seed=frame
@@ -635,7 +633,6 @@ STAGE_KEYS = (
     "annotate",
     "copy",
     "lidar_read",
-    "lidar_noise",
     "lidar_cast",
     "lidar_write",
 )
