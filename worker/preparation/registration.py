@@ -114,11 +114,11 @@ def register_clouds(
             mask &= np.abs(p_base[:, 1]) <= lateral_limit
         if keep_sensors is not None:
             mask &= np.isin(si, keep_sensors)
-        p_world = transform_points(T, p_base[mask])
+        kept = np.flatnonzero(mask)
+        p_world = transform_points(T, p_base.take(kept, axis=0))
         k = dedup.first_new(p_world)
-        parts.append(
-            RegisteredCloud(p_world[k], np.full(len(k), f, np.int32), si[mask][k], inten[mask][k])
-        )
+        kk = kept[k]
+        parts.append(RegisteredCloud(p_world[k], np.full(len(k), f, np.int32), si[kk], inten[kk]))
     merged = RegisteredCloud.concatenate(parts)
     log.info(
         "registered %d frames: %d points (voxel %.3f m)", len(counters), len(merged), voxel_size
@@ -213,13 +213,25 @@ class _VoxelSet:
         self.taken: NDArray = np.zeros(0, np.int64 if self.packable else np.dtype((np.void, 24)))
 
     def _keys(self, p_world: F64) -> NDArray:
-        key = np.floor(p_world / self.voxel).astype(np.int64) - self.lo
+        """(n,) voxel keys of (n, 3) world points."""
         if not self.packable:
+            key = np.floor(p_world / self.voxel).astype(np.int64) - self.lo
             return np.ascontiguousarray(key).view(np.dtype((np.void, 24))).ravel()
-        # Points beyond the range the keys were sized for (max_range=None) are clipped
-        # onto the border voxels (kept apart from each other only up to that border).
-        key = np.clip(key, 0, (1 << 21) - 1)
-        return (key[:, 0] << 42) | (key[:, 1] << 21) | key[:, 2]
+        # Column by column (geometry/columns.py: the (n, 3) loops are several times
+        # slower), the same integers. Points beyond the range the keys were sized for
+        # (max_range=None) are clipped onto the border voxels (kept apart from each other
+        # only up to that border).
+        out = self._axis_key(p_world[:, 0], 0) << 42
+        out |= self._axis_key(p_world[:, 1], 1) << 21
+        out |= self._axis_key(p_world[:, 2], 2)
+        return out
+
+    def _axis_key(self, coord: F64, axis: int) -> NDArray[np.int64]:
+        """(n,) voxel index along one axis of (n,) world coordinates, from ``lo``,
+        clipped to 21 bits."""
+        key = np.floor(coord / self.voxel).astype(np.int64)
+        key -= self.lo[axis]
+        return np.clip(key, 0, (1 << 21) - 1, out=key)
 
     def first_new(self, p_world: F64) -> NDArray[np.int64]:
         """Indices (sorted) of the first point of every voxel not taken by earlier frames."""
