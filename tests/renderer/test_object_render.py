@@ -279,3 +279,24 @@ def test_proxy_occludes_and_receives_shadow(cams, renderers):
         obj, T_wo, T_wb, proxies=ground, light=Lighting(sun_dir_world=sun, sun_intensity=0)
     )
     assert r.shadow.max() == 0.0
+
+
+def test_gathered_shadow_filter_equals_texel_fetches(cams, renderers):
+    """The shadow filter from textureGather gives the same bits as sixteen texelFetch:
+    the object's self-shadow and its shadow on a ground proxy, near the map's edges too
+    (a low sun: the ground shadow reaches past the map, clamped at its edge)."""
+    name = "rgb_center"
+    T_wb = vehicle_pose()
+    T_wo = place(T_wb, (14.0, 0.5, 0.0))
+    g = T_wo[:3, 3]
+    ground = _plane(g + np.array([[-20, -20, 0], [20, -20, 0], [20, 20, 0], [-20, 20, 0.0]]))
+    obj = box((0.6, 0.8, 1.8))
+    for sun in ([0.45, -0.55, 0.7], [0.9, 0.3, 0.15]):
+        light = Lighting(sun_dir_world=np.array(sun), sun_intensity=0.8)
+        a = renderer(renderers, cams, name, gather_shadow=False)
+        b = renderer(renderers, cams, name, gather_shadow=True)
+        ra = a.render(obj, T_wo, T_wb, proxies=ground, light=light)
+        rb = b.render(obj, T_wo, T_wb, proxies=ground, light=light)
+        assert ra.roi == rb.roi and ra.shadow.max() > 0.5
+        assert np.array_equal(ra.shadow, rb.shadow)
+        assert np.array_equal(ra.color, rb.color)
