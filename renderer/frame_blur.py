@@ -88,13 +88,14 @@ def _dog_kernels(sigma: float) -> tuple[F32, F32]:
     return g.astype(np.float32), dg.astype(np.float32)
 
 
-def _gradient(img: F32, sigma: float) -> tuple[F32, F32, F32]:
-    """(|grad|, d/du, d/dv) of ``G_sigma * img`` by Gaussian-derivative filters (px)."""
+def _gradient(img: F32, sigma: float) -> tuple[F32, F32]:
+    """(d/du, d/dv) (H, W) of ``G_sigma * img`` (H, W) by Gaussian-derivative filters (px).
+    The magnitude is read only where it is needed (:func:`subpixel_peak`)."""
     g, dg = _dog_kernels(sigma)
     rep = cv2.BORDER_REPLICATE
     gx = np.asarray(cv2.sepFilter2D(img, cv2.CV_32F, dg, g, borderType=rep), np.float32)
     gy = np.asarray(cv2.sepFilter2D(img, cv2.CV_32F, g, dg, borderType=rep), np.float32)
-    return np.hypot(gx, gy).astype(np.float32), gx, gy
+    return gx, gy
 
 
 def _gradient_noise_gain(sigma: float) -> float:
@@ -128,17 +129,27 @@ def candidate_pixels(
 
 
 def subpixel_peak(
-    mag: F32, vs: NDArray[np.intp], us: NDArray[np.intp], horizontal: NDArray[np.bool_]
+    gx: F32,
+    gy: F32,
+    vs: NDArray[np.intp],
+    us: NDArray[np.intp],
+    horizontal: NDArray[np.bool_],
 ) -> F64:
-    """(n,) peak of ``mag`` (H, W) through pixels (vs, us) along u (``horizontal``) or v:
-    the vertex of the parabola through the logarithms of the pixel and its two
-    neighbours (exact for a Gaussian profile); NaN where the three are not concave."""
+    """(n,) peak of the gradient magnitude ``|(gx, gy)|`` (H, W each) through pixels
+    (vs, us) along u (``horizontal``) or v: the vertex of the parabola through the
+    logarithms of the pixel and its two neighbours (exact for a Gaussian profile); NaN
+    where the three are not concave. The magnitude (float32, as ``np.hypot`` of the whole
+    images gives it) is computed at those 3n pixels only."""
     du = horizontal.astype(np.intp)
     dv = 1 - du
     eps = 1e-6
-    c = np.log(np.maximum(mag[vs, us].astype(np.float64), eps))
-    a = np.log(np.maximum(mag[vs - dv, us - du].astype(np.float64), eps))
-    b = np.log(np.maximum(mag[vs + dv, us + du].astype(np.float64), eps))
+
+    def log_mag(v: NDArray[np.intp], u: NDArray[np.intp]) -> F64:
+        return np.log(np.maximum(np.hypot(gx[v, u], gy[v, u]).astype(np.float64), eps))
+
+    c = log_mag(vs, us)
+    a = log_mag(vs - dv, us - du)
+    b = log_mag(vs + dv, us + du)
     curv = a - 2.0 * c + b
     with np.errstate(divide="ignore", invalid="ignore"):
         off = 0.5 * (a - b) / curv
@@ -186,7 +197,7 @@ def estimate_blur_sigma(
     if sub.shape[0] < 3 * _BORDER_PX or sub.shape[1] < 3 * _BORDER_PX:
         return None
     gray = cv2.cvtColor(np.ascontiguousarray(sub), cv2.COLOR_RGB2GRAY).astype(np.float32)
-    m1, gx, gy = _gradient(gray, DERIV_SIGMA_PX)
+    gx, gy = _gradient(gray, DERIV_SIGMA_PX)
     vs, us = np.nonzero(candidate_pixels(gray, gx, gy, exclude))
     if len(vs) > MAX_CANDIDATES:
         pick = np.linspace(0, len(vs) - 1, MAX_CANDIDATES).astype(np.intp)
@@ -210,10 +221,10 @@ def estimate_blur_sigma(
         cv2.GaussianBlur(gray, (0, 0), REBLUR_SIGMA_PX, borderType=cv2.BORDER_REPLICATE),
         np.float32,
     )
-    m2, _, _ = _gradient(re, DERIV_SIGMA_PX)
+    gx2, gy2 = _gradient(re, DERIV_SIGMA_PX)
     horizontal = np.abs(normals[:, 0]) >= np.abs(normals[:, 1])
-    p1 = subpixel_peak(m1, vs, us, horizontal)
-    p2 = subpixel_peak(m2, vs, us, horizontal)
+    p1 = subpixel_peak(gx, gy, vs, us, horizontal)
+    p2 = subpixel_peak(gx2, gy2, vs, us, horizontal)
     R2 = (p1 / p2) ** 2
     R2 = R2[np.isfinite(R2)]
     if len(R2) < MIN_EDGE_PIXELS:

@@ -106,7 +106,8 @@ def estimate_noise(
         r = immerkaer_response(ch)
         m = cv2.blur(ch, (5, 5), borderType=cv2.BORDER_REPLICATE)
         sm = cv2.GaussianBlur(ch, (3, 3), 0.8)
-        g = np.hypot(
+        # sqrt(gx^2 + gy^2) in float32: np.hypot's libm hypotf took 3 ms a 115k-px channel
+        g = cv2.magnitude(
             cv2.Sobel(sm, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(sm, cv2.CV_32F, 0, 1, ksize=3)
         )
         flat = keep & (g <= np.percentile(g[keep], FLAT_PERCENTILE))

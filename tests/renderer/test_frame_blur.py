@@ -105,7 +105,7 @@ def test_ballast_holds_nearly_all_the_edges() -> None:
     gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float32)
     from renderer.frame_blur import DERIV_SIGMA_PX, _gradient
 
-    _, gx, gy = _gradient(gray, DERIV_SIGMA_PX)
+    gx, gy = _gradient(gray, DERIV_SIGMA_PX)
     cand = candidate_pixels(gray, gx, gy, None)
     structure = np.zeros((H, W), bool)  # within 2 px of the rails', sky's, mast's edges
     structure[H // 4 - 2 : H // 4 + 3, W // 4 - 2 : 3 * W // 4 + 3] = True
