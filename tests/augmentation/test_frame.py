@@ -208,3 +208,33 @@ def test_each_frame_gets_its_key_frames_noise(noisy_run) -> None:
         key = plan.lidar_noise_keys[rec.frame_idx]
         want = {s: dataclasses.asdict(v) for s, v in plan.lidar_noise[key].items()}
         assert json.dumps(rec.lidar_noise) == json.dumps(want)
+
+
+def test_the_first_frame_from_the_plans_decode_is_the_file_decoded(noisy_run, tmp_path) -> None:
+    """The plan's lighting decoded the first frame's images; the frames stage takes them
+    (nothing is left after the chunk) and writes the bytes a fresh decode writes."""
+    from worker.augmentation.plan import _DECODED
+
+    seq, plan, chunk, _, _ = noisy_run
+    assert not _DECODED  # taken, or dropped at the end of the chunk
+    assert chunk.frames[0].frame_idx == plan.frames[0]
+    again = plan_augmentation(seq, plan.spec, truth_prepared(seq))
+    f0 = again.frames[0]
+    assert len(_DECODED) == len(again.cameras)
+    taken = augment_frames(again, [f0], tmp_path / "taken")
+    assert not _DECODED and taken.frames[0].timings["decode"] < 0.05
+    fresh = augment_frames(again, [f0], tmp_path / "fresh")
+    for cam in again.cameras:
+        uri = again.uris[f0][cam].lstrip("/")
+        assert (tmp_path / "taken" / uri).read_bytes() == (tmp_path / "fresh" / uri).read_bytes()
+        assert fresh.frames[0].cameras[cam].augmented
+
+
+def test_frame_order_gives_this_process_the_first_frame() -> None:
+    from worker.augmentation.pool import frame_order
+
+    frames = list(range(10, 20))
+    assert frame_order(frames, 0) == frames
+    assert frame_order(frames, 1) == [11, 12, 10, *range(13, 20)]
+    assert sorted(frame_order(frames, 2)) == frames and frame_order(frames, 2)[4] == 10
+    assert frame_order(frames[:3], 2) == frames[:3]

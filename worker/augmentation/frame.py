@@ -49,7 +49,13 @@ from worker.augmentation.annotations import (
     mask_outline,
 )
 from worker.augmentation.lidar_noise import bounding_sphere
-from worker.augmentation.plan import NEAR_PLANE_M, Plan, PlannedObject
+from worker.augmentation.plan import (
+    NEAR_PLANE_M,
+    Plan,
+    PlannedObject,
+    drop_decoded,
+    take_decoded,
+)
 from worker.osdar.errors import atomic_write_bytes
 from worker.osdar.images import read_png, write_png
 from worker.osdar.pcd import PointCloud, read_pcd, write_pcd
@@ -201,14 +207,18 @@ def composite_file(
     objects first) into its ROI, encode once to ``dest`` (or link ``src`` when no pixel
     changes); returns whether pixels changed.
 
-    The PNG is decoded straight into OpenCV's BGR order and encoded from it: only a
-    window around each ROI (``COMPOSITE_MARGIN_PX`` wider than the LAB-matching ring, so
-    the result equals a full-frame composite) is converted to RGB and composited. Images
-    that are not 8-bit 3-channel take the general :func:`read_png` path.
+    The PNG is decoded straight into OpenCV's BGR order (or taken from the plan, which
+    decoded the first frame for the lighting: :func:`.plan.take_decoded`) and encoded
+    from it: only a window around each ROI (``COMPOSITE_MARGIN_PX`` wider than the
+    LAB-matching ring, so the result equals a full-frame composite) is converted to RGB
+    and composited. Images that are not 8-bit 3-channel take the general
+    :func:`read_png` path.
     """
 
     tic = time.perf_counter()
-    img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+    img = take_decoded(src)
+    if img is None:
+        img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
     t["decode"] += time.perf_counter() - tic
     if img is None or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         tic = time.perf_counter()
@@ -714,12 +724,18 @@ def augment_frame(plan: Plan, frame: int, out_root: Path) -> tuple[FrameRecord, 
 
 def augment_frames(plan: Plan, frames: Iterable[int], out_root: str | Path) -> ChunkResult:
     """Augment a chunk of frames: writes their augmented or linked camera and lidar files
-    under ``out_root`` (same relative paths as the input); returns the records."""
+    under ``out_root`` (same relative paths as the input); returns the records. The
+    images the plan decoded in this process are used where they fit and then dropped
+    (:func:`.plan.take_decoded`: a process's first chunk after its plan starts with the
+    first frame)."""
     tic = time.perf_counter()
     out_root = Path(out_root)
     records, files = [], []
-    for f in frames:
-        rec, written = augment_frame(plan, int(f), out_root)
-        records.append(rec)
-        files += written
+    try:
+        for f in frames:
+            rec, written = augment_frame(plan, int(f), out_root)
+            records.append(rec)
+            files += written
+    finally:
+        drop_decoded()
     return ChunkResult(str(out_root), files, records, time.perf_counter() - tic)

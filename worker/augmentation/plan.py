@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -46,6 +47,22 @@ F64 = NDArray[np.float64]
 
 #: Near plane of the cameras' renders (m): nearer geometry is clipped.
 NEAR_PLANE_M = 0.05
+
+#: The camera images the plan decoded for the lighting (path -> (H, W, 3) uint8 in OpenCV's
+#: BGR order), for this process's frames stage to take instead of decoding them again
+#: (:func:`take_decoded`); emptied by each plan and by :func:`drop_decoded`.
+_DECODED: dict[str, NDArray[np.uint8]] = {}
+
+
+def take_decoded(path: str | Path) -> NDArray[np.uint8] | None:
+    """The (H, W, 3) uint8 BGR image of ``path`` the plan decoded in this process, handed
+    out once (None: decode the file)."""
+    return _DECODED.pop(str(Path(path).resolve()), None)
+
+
+def drop_decoded() -> None:
+    """Forget the images the plan decoded (the frames stage is over)."""
+    _DECODED.clear()
 
 
 class AugmentError(ValueError):
@@ -464,7 +481,8 @@ def _level_of_detail(obj: ObjectMesh, view: _Opened, positions: F64) -> tuple[Ob
 def _lights(
     spec: AugmentSpec, prepared: Any, seq: Any, view: _Opened, warnings: list[str]
 ) -> dict[str, Lighting]:
-    """Lighting per camera from its first frame of the range (sun by ephemeris if asked)."""
+    """Lighting per camera from its first frame of the range (sun by ephemeris if asked);
+    the images are kept for the frames stage (:func:`take_decoded`)."""
     sun = None
     if spec.render.sun == "ephemeris":
         w = prepared.world
@@ -477,6 +495,7 @@ def _lights(
         img = seq.image(f0, c)
         if img.ndim == 2:
             raise AugmentError(f"camera {c} has grey images: only colour cameras are augmented")
+        _DECODED[str(seq.image_path(f0, c).resolve())] = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
         lights[c] = estimate_lighting(img, view.cams[c], view.poses[c][f0], sun_dir_world=sun)
     return lights
 
@@ -564,6 +583,7 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
 
     timings: dict[str, float] = {}
     warnings: list[str] = []
+    drop_decoded()
     tic = time.perf_counter()
     seq = sequence(seq_folder)
     view = _open(seq, spec, prepared.track, warnings)

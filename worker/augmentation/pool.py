@@ -136,6 +136,17 @@ def _augment_frames_from_file(plan_file: str, frames: list[int], out_root: str) 
     return dump_chunk(augment_frames(plan, frames, out_root))
 
 
+def frame_order(frames: list[int], n_children: int) -> list[int]:
+    """The order frames are handed out in (the first 2 n_children go to the children,
+    the next to this process): the first frame, whose images the plan decoded in this
+    process for the lighting (:func:`.plan.take_decoded`), comes right after the
+    children's, so this process composites it without decoding it again."""
+    if n_children <= 0 or len(frames) <= 2 * n_children:
+        return list(frames)
+    k = 2 * n_children
+    return [*frames[1 : k + 1], frames[0], *frames[k + 1 :]]
+
+
 def run_frames(
     plan: Plan, scratch: Path, pool: Any, progress: Progress | None
 ) -> list[ChunkResult]:
@@ -143,7 +154,8 @@ def run_frames(
     process is the n-th worker: it takes frames itself while the others start up and
     between collecting their results (each child keeps two frames queued)."""
     total = len(plan.frames)
-    pending = list(reversed(plan.frames))
+    n_children = 0 if pool is None else pool._max_workers
+    pending = list(reversed(frame_order(plan.frames, n_children)))
     chunks: list[ChunkResult] = []
 
     def report() -> None:
@@ -158,7 +170,6 @@ def run_frames(
     # The plan goes to the workers once, as a file; each task names it.
     plan_file = scratch / ".plan.npz"
     plan_file.write_bytes(dump_plan(plan))
-    n_children = pool._max_workers
     futures: set[Future] = set()
     while pending or futures:
         while pending and len(futures) < 2 * n_children:
