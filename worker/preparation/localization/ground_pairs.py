@@ -27,9 +27,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
-from scipy.stats import median_abs_deviation
-
-from geometry.columns import zero_centre
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -53,6 +50,9 @@ LAGS = (1, 10)
 #: Trim residuals beyond this many robust sigmas (floor in m).
 TRIM_SIGMAS = 3.0
 TRIM_FLOOR_M = 0.005
+#: The normal distribution's median absolute deviation in sigmas (``special.ndtri(0.75)``,
+#: the constant of ``scipy.stats.median_abs_deviation(..., scale="normal")``).
+MAD_PER_SIGMA = 0.6744897501960817
 
 
 @dataclass(frozen=True)
@@ -177,9 +177,7 @@ def ground_pair(
         r = r0 + A @ x
         r_ok = r[ok]
         med = float(np.median(r_ok))
-        spread = max(
-            median_abs_deviation(r_ok - med, center=zero_centre, scale="normal"), TRIM_FLOOR_M
-        )
+        spread = max(_spread_about_zero(r_ok - med), TRIM_FLOOR_M)
         keep = np.abs(r - med) < TRIM_SIGMAS * spread
         if int(np.sum(keep)) < MIN_MATCHED:
             return None
@@ -227,6 +225,15 @@ def symmetric_ground_pair(
     T[:3, :3] = R_f @ Rotation.from_rotvec(half).as_matrix()
     T[:3, 3] = 0.5 * (fwd.T_k_j[:3, 3] + T_b[:3, 3])
     return GroundPair(k, j, T, min(fwd.matched, bwd.matched), 0.5 * (fwd.rms_m + bwd.rms_m))
+
+
+def _spread_about_zero(r: F64) -> float:
+    """Robust sigma of (m,) residuals about zero: their median absolute value over
+    :data:`MAD_PER_SIGMA`. The same number, bit for bit, as ``scipy.stats.
+    median_abs_deviation(r, center=zero_centre, scale="normal")``, without its argument
+    checking and the median it takes only to shape the centre (7.7 against 15 ms a pair).
+    """
+    return float(np.median(np.abs(r))) / MAD_PER_SIGMA
 
 
 def _least_squares(A: F64, b: F64) -> F64:
