@@ -84,11 +84,18 @@ def main() -> int:
     ap.add_argument("--strategy", default="auto")
     ap.add_argument("--voxel-size", type=float, default=None)
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
+    ap.add_argument(
+        "--option", action="append", default=[], metavar="KEY=JSON",
+        help="a localization option, e.g. fused_scan_pairs=false (repeatable)",
+    )  # fmt: skip
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     tune_malloc()  # as run_preparation does: both sides measured with the same allocator
     reg = {} if args.voxel_size is None else {"voxel_size": args.voxel_size}
-    config = PrepareConfig(strategy=args.strategy).with_overrides(registration=reg)
+    options = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.option)}
+    config = PrepareConfig(strategy=args.strategy).with_overrides(
+        registration=reg, localization={"options": options}
+    )
     seq = Sequence.open(args.sequence)
     rows = []
     for k in range(args.runs):

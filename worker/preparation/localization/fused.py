@@ -200,10 +200,11 @@ class Sigmas:
     odo_pair_t_b: tuple[float, float] = (0.0002, 0.0002)
     #: Fine scan-to-scan registration (:mod:`~worker.preparation.localization.scan_pairs`)
     #: of the odometry pairs: their lateral component where its own sigma (floored at
-    #: ``scan_pair_lat_floor``, m) is sharper than KISS-ICP's pair. Measured on six matrix
-    #: cells (C2 anchor error, its frame-to-frame change p90): klein_flottbek 35 frames
-    #: sparse 8.4 -> 2.8 px, 0.95 -> 0.61; fire_site 60 sparse 3.4 -> 1.5, 0.60 -> 0.50;
-    #: a slow tight curve 11.3 -> 4.9, 3.1 -> 2.0 (docs/method.md has the rest).
+    #: ``scan_pair_lat_floor``, m) is sharper than KISS-ICP's pair. The preparation
+    #: option ``fused_scan_pairs: false`` (job spec ``localization.options``) turns it
+    #: off: on fire_site 100 frames at full density the pairs cost 7 s (preparation 1.79
+    #: -> 2.42x KISS-ICP alone). Measured on 12 matrix cells (docs/method.md): the C2
+    #: anchor jitter p90 lower in 10, e.g. a slow sparse station 3.41 -> 1.18 px.
     scan_pairs: bool = True
     scan_pair_lat_floor: float = 0.002
     #: Estimate the INS wander from the whole solution (:func:`wander_factors`).
@@ -1072,7 +1073,7 @@ def _odometry_pairs(
     T_k_j = np.linalg.inv(T[k]) @ T[j]
     w = np.concatenate(wt)
     health.metrics["fused_odometry_pairs"] = float(len(k))
-    if sig.scan_pairs:
+    if sig.scan_pairs and inp.options.get("fused_scan_pairs", True):
         _fine_pairs(inp, k, j, T_k_j, w, health, sig)
     return {"k": k, "j": j, "T_k_j": T_k_j, "w": w}
 
