@@ -201,8 +201,8 @@ class Sigmas:
     #: Fine scan-to-scan registration (:mod:`~worker.preparation.localization.scan_pairs`)
     #: of the odometry pairs: their lateral component where its own sigma (floored at
     #: ``scan_pair_lat_floor``, m) is sharper than KISS-ICP's pair. The preparation
-    #: option ``fused_scan_pairs: false`` (job spec ``localization.options``) turns it
-    #: off: on fire_site 100 frames at full density the pairs cost 7 s (preparation 1.79
+    #: option ``fused_scan_pairs: false`` (``PrepareConfig.localization.options``) turns
+    #: it off: on fire_site 100 frames at full density the pairs cost 7 s (preparation 1.79
     #: -> 2.42x KISS-ICP alone). Measured on 12 matrix cells (docs/method.md): the C2
     #: anchor jitter p90 lower in 10, e.g. a slow sparse station 3.41 -> 1.18 px.
     scan_pairs: bool = True
