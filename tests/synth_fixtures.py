@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from geometry.poses import PoseTrack
+from worker.preparation.localization import LocalizationInput
 
 STATION = {"scene": "station", "frames": 12, "scale": 0.1, "lidar_density": 0.3, "seed": 0}
 
@@ -35,3 +36,15 @@ def landmarks(folder: Path, kind: str | None = None) -> list[dict]:
 def true_pole_xy(folder: Path) -> np.ndarray:
     """(k, 2) true pole axes from the pole_top landmarks."""
     return np.array([lm["xyz"][:2] for lm in landmarks(folder, "pole_top")]).reshape(-1, 2)
+
+
+def true_ego_input(folder: Path, **options: object) -> LocalizationInput:
+    """The sequence's localization input with its TRUE ego centreline (the strategies'
+    own rail extraction left out), ``options`` as the strategies' options."""
+    from worker.osdar.sequence import Sequence
+    from worker.preparation.centreline import Centreline
+    from worker.preparation.localization import make_input
+
+    entries = json.loads((folder / "ground_truth" / "centrelines.json").read_text())
+    ego = next(Centreline.from_json(e) for e in entries if e.get("ego"))
+    return make_input(Sequence.open(folder), ego=ego, options=dict(options))

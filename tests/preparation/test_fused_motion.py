@@ -4,7 +4,6 @@ object's jitter), and in a curve's transition the real yaw acceleration stays.""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -12,9 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from geometry.poses import PoseTrack
-from worker.osdar.sequence import Sequence
-from worker.preparation.centreline import Centreline
-from worker.preparation.localization import LocalizationInput, make_input
+from tests.synth_fixtures import true_ego_input
+from worker.preparation.localization import LocalizationInput
 from worker.preparation.localization.fused import FusedStrategy, Sigmas
 
 
@@ -39,9 +37,7 @@ def curve(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _input(folder: Path) -> LocalizationInput:
-    entries = json.loads((folder / "ground_truth/centrelines.json").read_text())
-    ego = next(Centreline.from_json(e) for e in entries if e.get("ego"))
-    return make_input(Sequence.open(folder), ego=ego)
+    return true_ego_input(folder)
 
 
 def _rotation_error_mdeg(track: PoseTrack, folder: Path, lag: int) -> float:

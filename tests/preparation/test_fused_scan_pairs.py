@@ -5,16 +5,13 @@ The answer is the generator's ground truth; seed 5 is none of the robustness mat
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from geometry.poses import PoseTrack
-from worker.osdar.sequence import Sequence
-from worker.preparation.centreline import Centreline
-from worker.preparation.localization import LocalizationInput, make_input
+from tests.synth_fixtures import true_ego_input
 from worker.preparation.localization.fused import FusedStrategy, Sigmas
 
 
@@ -29,12 +26,6 @@ def sparse(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return generate(tmp_path_factory.mktemp("scan_pairs") / "seq", cfg).folder
 
 
-def _input(folder: Path) -> LocalizationInput:
-    entries = json.loads((folder / "ground_truth/centrelines.json").read_text())
-    ego = next(Centreline.from_json(e) for e in entries if e.get("ego"))
-    return make_input(Sequence.open(folder), ego=ego)
-
-
 def _lateral_error_mm(track: PoseTrack, folder: Path, lag: int) -> float:
     """RMS (mm) of the error of frame k + lag's position across the track in frame k."""
     gt = PoseTrack.from_csv(folder / "ground_truth/poses_dense.csv").interpolate(track.timestamps)
@@ -47,9 +38,9 @@ def _lateral_error_mm(track: PoseTrack, folder: Path, lag: int) -> float:
 
 
 def test_scan_pairs_hold_the_lateral_motion_over_ten_frames(sparse: Path) -> None:
-    inp = _input(sparse)
+    inp = true_ego_input(sparse)
     without = FusedStrategy(Sigmas(scan_pairs=False)).run(inp)
-    inp = _input(sparse)
+    inp = true_ego_input(sparse)
     with_pairs = FusedStrategy().run(inp)
     assert with_pairs.health.metrics.get("fused_scan_pairs", 0) > 10
     e0, e1 = (
