@@ -1090,14 +1090,12 @@ def _fine_pairs(
     """The odometry pairs' lateral component from the fine scan-to-scan registration
     (:mod:`.scan_pairs`) where it is sharper than KISS-ICP's: ``T_k_j`` (Q, 4, 4) and
     ``w`` (Q, 2) updated in place. Independent registrations: no sqrt(lag) sharing."""
-    sel = np.arange(len(k))
     fine = register_pairs(inp, k, j, T_k_j)
     sigma = np.maximum(fine.sd_t[:, 1], sig.scan_pair_lat_floor)
-    use = fine.ok & (1.0 / sigma > w[sel, 1])
-    rows = sel[use]
-    T_k_j[rows, 1, 3] = fine.T_k_j[use, 1, 3]
-    w[rows, 1] = 1.0 / sigma[use]
-    health.metrics["fused_scan_pairs"] = float(len(rows))
+    use = fine.ok & (1.0 / sigma > w[:, 1])
+    T_k_j[use, 1, 3] = fine.T_k_j[use, 1, 3]
+    w[use, 1] = 1.0 / sigma[use]
+    health.metrics["fused_scan_pairs"] = float(np.sum(use))
 
 
 def _odometry_pair_residuals(pb: Problem, R: F64, p: F64) -> F64:

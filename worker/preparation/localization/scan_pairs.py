@@ -51,8 +51,6 @@ class ScanPairSettings:
     #: own body and the far field's few, noisy returns.
     min_range_m: float = 2.0
     max_range_m: float = 80.0
-    #: Voxel filter of each scan (m): keeps the near field's density in check.
-    voxel_m: float = 0.0
     #: Points kept of each scan (the fixed one's surfaces and normals), and of the moving
     #: one per registration, drawn at random (seeded; a random draw is no pattern fixed to
     #: the base). With 20k points a scan and 6000 a registration, the pairs of 100 frames
@@ -117,19 +115,15 @@ class ScanClouds:
         return cloud
 
 
-def scan_cloud(p_base: F64, s: ScanPairSettings, ground: bool = False) -> o3d.geometry.PointCloud:
+def scan_cloud(p_base: F64, s: ScanPairSettings) -> o3d.geometry.PointCloud:
     """One frame's scan for :func:`register_scans` from its (m, 3) base points: within
-    the range limits, its ground removed (kept with ``ground``), thinned, with normals."""
+    the range limits, its ground removed, thinned, with normals."""
     r = np.linalg.norm(p_base, axis=1)
-    p = p_base[(r > s.min_range_m) & (r < s.max_range_m)]
-    if not ground:
-        p = remove_ground(p)
+    p = remove_ground(p_base[(r > s.min_range_m) & (r < s.max_range_m)])
     if len(p) > s.scan_points:
         rng = np.random.default_rng(len(p))
         p = p[np.sort(rng.choice(len(p), s.scan_points, replace=False))]
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(p, dtype=np.float64)))
-    if s.voxel_m > 0 and len(p):
-        cloud = cloud.voxel_down_sample(s.voxel_m)
     if len(cloud.points) >= s.min_points:
         cloud.estimate_normals(
             o3d.geometry.KDTreeSearchParamHybrid(radius=s.normal_radius_m, max_nn=s.normal_nn)
