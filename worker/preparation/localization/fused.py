@@ -76,6 +76,7 @@ from worker.preparation.localization.hat import hat_variances, relative_differen
 from worker.preparation.localization.heading_hat import MIN_PAIRS as HEADING_MIN_PAIRS
 from worker.preparation.localization.heading_hat import HeadingErrors, heading_errors
 from worker.preparation.localization.ins_wander import ins_wander, robust_rms
+from worker.preparation.localization.lidar_yaw import lidar_yaw_offset, turn_lidar_poses
 from worker.preparation.localization.odometry import (
     degenerate_frames,
     is_degenerate,
@@ -207,6 +208,10 @@ class Sigmas:
     #: anchor jitter p90 lower in 10, e.g. a slow sparse station 3.41 -> 1.18 px.
     scan_pairs: bool = True
     scan_pair_lat_floor: float = 0.002
+    #: The merged cloud's yaw against the base (:mod:`.lidar_yaw`), estimated from the scan
+    #: pairs on straight track and taken out of every lidar-derived relative pose (the
+    #: steps and the pairs). The option ``fused_lidar_yaw: false`` turns it off.
+    lidar_yaw: bool = True
     #: Estimate the INS wander from the whole solution (:func:`wander_factors`).
     estimate_wander: bool = True
     #: Estimate the rotation smoothness per axis from the solution (:func:`motion_factors`).
@@ -858,6 +863,10 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     if rail is None:
         # Nothing else fixes the absolute attitude: the INS's is taken as is.
         bias_sigma[:3] = 0.005 * DEG
+    odo_pairs = _odometry_pairs(inp, w_t, w_r, zupt, degenerate, health, sig)
+    if odo_pairs is not None and odo_pairs["yaw_offset"] and n >= 2:
+        D_base = turn_lidar_poses(D, odo_pairs["yaw_offset"])
+        d_t, d_R = D_base[:, :3, 3].copy(), D_base[:, :3, :3].copy()
     return Problem(
         R0=R0,
         p0=p0,
@@ -881,7 +890,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         bias_step_sigma=bias_step,
         ground=ground,
         vel=_velocity_steps(inp, ins, health, sig) if n >= 2 else None,
-        odo_pairs=_odometry_pairs(inp, w_t, w_r, zupt, degenerate, health, sig),
+        odo_pairs=odo_pairs,
         zupt=zupt,
         diff2=difference_weights(np.asarray(inp.times, dtype=np.float64), 2),
         diff3=difference_weights(np.asarray(inp.times, dtype=np.float64), 3),
@@ -1073,9 +1082,12 @@ def _odometry_pairs(
     T_k_j = np.linalg.inv(T[k]) @ T[j]
     w = np.concatenate(wt)
     health.metrics["fused_odometry_pairs"] = float(len(k))
+    delta = 0.0
     if sig.scan_pairs and inp.options.get("fused_scan_pairs", True):
-        _fine_pairs(inp, k, j, T_k_j, w, health, sig)
-    return {"k": k, "j": j, "T_k_j": T_k_j, "w": w}
+        delta = _fine_pairs(inp, k, j, T_k_j, w, health, sig)
+    if delta:
+        T_k_j = turn_lidar_poses(T_k_j, delta)
+    return {"k": k, "j": j, "T_k_j": T_k_j, "w": w, "yaw_offset": delta}
 
 
 def _fine_pairs(
@@ -1086,16 +1098,26 @@ def _fine_pairs(
     w: F64,
     health: Health,
     sig: Sigmas,
-) -> None:
+) -> float:
     """The odometry pairs' lateral component from the fine scan-to-scan registration
     (:mod:`.scan_pairs`) where it is sharper than KISS-ICP's: ``T_k_j`` (Q, 4, 4) and
-    ``w`` (Q, 2) updated in place. Independent registrations: no sqrt(lag) sharing."""
+    ``w`` (Q, 2) updated in place. Independent registrations: no sqrt(lag) sharing.
+    Returns the merged cloud's yaw against the base (:mod:`.lidar_yaw`, rad) where the
+    pairs show one beyond twice its standard error (``sig.lidar_yaw``), else 0."""
     fine = register_pairs(inp, k, j, T_k_j)
     sigma = np.maximum(fine.sd_t[:, 1], sig.scan_pair_lat_floor)
     use = fine.ok & (1.0 / sigma > w[:, 1])
     T_k_j[use, 1, 3] = fine.T_k_j[use, 1, 3]
     w[use, 1] = 1.0 / sigma[use]
     health.metrics["fused_scan_pairs"] = float(np.sum(use))
+    if not (sig.lidar_yaw and inp.options.get("fused_lidar_yaw", True)):
+        return 0.0
+    est = lidar_yaw_offset(fine.T_k_j, fine.ok, j - k)
+    if est is None:
+        return 0.0
+    health.metrics["fused_lidar_yaw_mrad"] = 1000.0 * est.rad
+    health.metrics["fused_lidar_yaw_se_mrad"] = 1000.0 * est.se_rad
+    return est.rad if est.significant else 0.0
 
 
 def _odometry_pair_residuals(pb: Problem, R: F64, p: F64) -> F64:
