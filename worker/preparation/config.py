@@ -64,11 +64,9 @@ class LocalizationConfig(_Section):
 class LidarAlignmentConfig(_Section):
     """Per-lidar corrections of the merged clouds (lidar_alignment.py)."""
 
-    #: Estimate them and apply the trusted ones before odometry. Off by default: on the
-    #: merge-error cells it halves fused's lag-30 error (fire_site 60 frames 1.75 -> 0.69
-    #: cm), but on a slow 20-frame tight curve at density 0.3 fused's lag-10 heading error
-    #: went from 0.195 to 0.480 deg with it (not yet understood).
-    enabled: bool = False
+    #: Estimate them and apply those beyond the estimate's own error before odometry
+    #: (docs/method.md, "Lidar alignment").
+    enabled: bool = True
     frames: int = Field(8, ge=2)  # frames they are estimated on (alternate ones: 2 halves)
 
 

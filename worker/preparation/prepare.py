@@ -229,7 +229,11 @@ def localization_setup(
     alignment = None
     with stage("lidar_alignment"):  # timed (0 s) when off, as every stage is
         if config.lidar_alignment.enabled:
-            alignment = estimate_alignment(clouds, inp.frames, config.lidar_alignment.frames)
+            p_ins = _at_frames(inp.ins_track, inp).T[:, :3, 3]
+            span = float(np.max(np.linalg.norm(p_ins - p_ins[0], axis=1))) if len(p_ins) else 0.0
+            alignment = estimate_alignment(
+                clouds, inp.frames, config.lidar_alignment.frames, span_m=span
+            )
             clouds.set_corrections(alignment.corrections())
 
     with stage("odometry"):
