@@ -12,6 +12,7 @@ import pytest
 
 from geometry.poses import PoseTrack
 from tests.synth_fixtures import true_ego_input
+from worker.preparation.localization.base import Health
 from worker.preparation.localization.fused import FusedStrategy, Sigmas
 
 
@@ -50,3 +51,31 @@ def test_scan_pairs_hold_the_lateral_motion_over_ten_frames(sparse: Path) -> Non
     # measured on the matrix's cells: 14 -> 4.6 mm (klein_flottbek, 35 frames), 19 -> 1.2
     assert e1 < 6.0, (e0, e1)
     assert e1 < 0.6 * e0, (e0, e1)
+
+
+def test_first_frames_registered_to_a_mature_map(sparse: Path) -> None:
+    # KISS-ICP registers its first frames against a map of one to three scans; on this
+    # sparse sequence frame 0's pose in frame 3's was 157 mdeg of heading and 115 mm off
+    # (measured). Registered onto the scans of frames 3-10 they must be at least halved.
+    from scipy.spatial.transform import Rotation
+
+    from worker.preparation.localization.fused import _map_first_steps
+    from worker.preparation.localization.odometry import odometry_deltas
+
+    inp = true_ego_input(sparse)
+    kiss = odometry_deltas(inp)
+    D = kiss.copy()
+    health = Health()
+    _map_first_steps(inp, D, health, Sigmas(map_first_steps=3))
+    assert health.metrics["fused_first_frames_to_map"] == 3
+    np.testing.assert_array_equal(D[3:], kiss[3:])  # only the first three steps change
+    gt = PoseTrack.from_csv(sparse / "ground_truth/poses_dense.csv").interpolate(inp.times)
+    true_0_3 = np.linalg.inv(gt[0]) @ gt[3]
+
+    def error(steps: np.ndarray) -> tuple[float, float]:
+        E = np.linalg.inv(true_0_3) @ steps[0] @ steps[1] @ steps[2]
+        yaw = abs(Rotation.from_matrix(E[:3, :3]).as_rotvec()[2])
+        return float(np.degrees(yaw)), float(np.linalg.norm(E[:3, 3]))
+
+    (yaw_kiss, t_kiss), (yaw_map, t_map) = error(kiss), error(D)
+    assert yaw_map < 0.5 * yaw_kiss and t_map < 0.5 * t_kiss, (yaw_kiss, t_kiss, yaw_map, t_map)

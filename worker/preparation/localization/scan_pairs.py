@@ -246,3 +246,26 @@ def register_pairs(
     return ScanPairs(
         np.asarray(k, dtype=np.int64), np.asarray(j, dtype=np.int64), T_out, sd_t, sd_r, ok
     )
+
+
+def register_to_map(
+    inp: LocalizationInput,
+    k: int,
+    map_frames: NDArray[np.int64],
+    T_odom: F64,
+    settings: ScanPairSettings | None = None,
+) -> F64 | None:
+    """Frame ``k``'s scan registered onto the scans of ``map_frames`` merged with their
+    poses ``T_odom`` (n, 4, 4): its refined pose in that frame (4, 4), from ``T_odom[k]``,
+    or None where it failed a gate."""
+    clouds = scan_clouds(inp, settings)
+    s = clouds.settings
+    target = o3d.geometry.PointCloud()
+    for j in map_frames:
+        c = clouds.get(int(j))
+        if c.has_normals():
+            target += o3d.geometry.PointCloud(c).transform(T_odom[int(j)])
+    if not target.has_normals() or len(target.points) < s.min_points:
+        return None
+    got = register_scans(clouds.get(int(k)), target, T_odom[int(k)], s, seed=int(k))
+    return None if got is None else got[0]
