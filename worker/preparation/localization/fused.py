@@ -85,7 +85,11 @@ from worker.preparation.localization.odometry import (
     odometry_track,
 )
 from worker.preparation.localization.rails import RailsStrategy, orientation_noise, rail_frames
-from worker.preparation.localization.scan_pairs import register_pairs, register_to_map
+from worker.preparation.localization.scan_pairs import (
+    closure_factor,
+    register_pairs,
+    register_to_map,
+)
 from worker.preparation.localization.step_noise import step_noise, white_noise
 
 F64 = NDArray[np.float64]
@@ -1126,6 +1130,10 @@ def _map_first_steps(inp: LocalizationInput, D: F64, health: Health, sig: Sigmas
     health.metrics["fused_first_frames_to_map"] = float(done)
 
 
+#: Fewest closures (:func:`.scan_pairs.closure_factor`) to scale the scan pairs by.
+MIN_CLOSURES = 3
+
+
 def _fine_pairs(
     inp: LocalizationInput,
     k: NDArray[np.int64],
@@ -1143,6 +1151,13 @@ def _fine_pairs(
     which pairs took the fine lateral component."""
     fine = register_pairs(inp, k, j, T_k_j)
     sigma = np.maximum(fine.sd_t[:, 1], sig.scan_pair_lat_floor)
+    lags = sorted({int(L) for L in np.unique(j - k)})
+    if len(lags) >= 2 and inp.options.get("fused_scan_pair_closure", True):
+        f, m = closure_factor(fine, lags[0], lags[-1])
+        health.metrics["fused_scan_pair_closure"] = f
+        health.metrics["fused_scan_pair_closures"] = float(m)
+        if m >= MIN_CLOSURES:
+            sigma = sigma * max(f, 1.0)
     use = fine.ok & (1.0 / sigma > w[:, 1])
     T_k_j[use, 1, 3] = fine.T_k_j[use, 1, 3]
     w[use, 1] = 1.0 / sigma[use]

@@ -269,3 +269,43 @@ def register_to_map(
         return None
     got = register_scans(clouds.get(int(k)), target, T_odom[int(k)], s, seed=int(k))
     return None if got is None else got[0]
+
+
+#: Median of a chi-square variable with one degree of freedom.
+_CHI2_1_MEDIAN = 0.454936
+
+
+def closure_factor(pairs: ScanPairs, short: int, long: int) -> tuple[float, int]:
+    """How far the registrations' lateral positions disagree with each other beyond their
+    sigmas: for every k with the ``long`` pair (k, k + long) and the ``long // short``
+    chained ``short`` pairs all converged, the chain's lateral position of frame k + long
+    in frame k against the direct pair's, normalised by the sigma both imply (the
+    lateral sigmas and each link's heading sigma times the distance still to go). Returns
+    the robust scale ``sqrt(median(c^2) / 0.455)`` of those closures (1: as the sigmas
+    say) and how many there were; (1.0, 0) without any."""
+    if long % short:
+        return 1.0, 0
+    at = {(int(a), int(b)): i for i, (a, b) in enumerate(zip(pairs.k, pairs.j, strict=True))}
+    z = []
+    for i, (a, b) in enumerate(zip(pairs.k, pairs.j, strict=True)):
+        if b - a != long or not pairs.ok[i]:
+            continue
+        links = [
+            at.get((int(a) + m * short, int(a) + (m + 1) * short)) for m in range(long // short)
+        ]
+        if any(x is None or not pairs.ok[x] for x in links):
+            continue
+        T = np.eye(4)
+        var = float(pairs.sd_t[i, 1] ** 2)
+        for x in links:
+            T = T @ pairs.T_k_j[x]
+            var += float(pairs.sd_t[x, 1] ** 2)
+        # each link's heading error swings the rest of the chain sideways
+        rest = pairs.T_k_j[i, 0, 3]
+        for x in links:
+            rest -= pairs.T_k_j[x, 0, 3]
+            var += float((pairs.sd_r[x, 2] * rest) ** 2)
+        z.append((T[1, 3] - pairs.T_k_j[i, 1, 3]) / np.sqrt(var))
+    if not z:
+        return 1.0, 0
+    return float(np.sqrt(np.median(np.square(z)) / _CHI2_1_MEDIAN)), len(z)
