@@ -66,7 +66,7 @@ def test_first_frames_registered_to_a_mature_map(sparse: Path) -> None:
     kiss = odometry_deltas(inp)
     D = kiss.copy()
     health = Health()
-    _map_first_steps(inp, D, health, Sigmas(map_first_steps=3))
+    _map_first_steps(inp, D, health, Sigmas())
     assert health.metrics["fused_first_frames_to_map"] == 3
     np.testing.assert_array_equal(D[3:], kiss[3:])  # only the first three steps change
     gt = PoseTrack.from_csv(sparse / "ground_truth/poses_dense.csv").interpolate(inp.times)

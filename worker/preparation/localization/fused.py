@@ -213,10 +213,8 @@ class Sigmas:
     scan_pairs: bool = True
     scan_pair_lat_floor: float = 0.002
     #: KISS-ICP's first steps re-registered against the map of the frames after them
-    #: (:func:`_map_first_steps`; the option ``fused_map_first_steps: 3`` turns it on).
-    #: Off: on 12 matrix cells it took the worst one's anchor error from 34 to 2.8 px but
-    #: a slow sparse station's from 2.5 to 12.5 px (docs/method.md).
-    map_first_steps: int = 0
+    #: (:func:`_map_first_steps`; the option ``fused_map_first_steps: 0`` turns it off).
+    map_first_steps: int = 3
     map_first_frames: int = 8
     #: The merged cloud's yaw against the base (:mod:`.lidar_yaw`), estimated from the scan
     #: pairs on straight track and taken out of every lidar-derived relative pose (the
