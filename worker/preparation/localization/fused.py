@@ -1099,6 +1099,12 @@ def _odometry_pairs(
     return {"k": k, "j": j, "T_k_j": T_k_j, "w": w, "yaw_offset": delta, "fine": fine}
 
 
+#: Fewest frames after the first ``map_first_steps`` for their map to be worth registering
+#: onto: on a 6-frame sparse sequence (a map of 3 scans) the refined first frames bent the
+#: poses so far that the prepared ego track ended 9.5 m ahead.
+MIN_MAP_FRAMES = 6
+
+
 def _map_first_steps(inp: LocalizationInput, D: F64, health: Health, sig: Sigmas) -> None:
     """KISS-ICP's first ``sig.map_first_steps`` steps re-registered against a mature local
     map: frames ``K - 1`` down to 0 each registered (:func:`.scan_pairs.register_to_map`,
@@ -1114,7 +1120,12 @@ def _map_first_steps(inp: LocalizationInput, D: F64, health: Health, sig: Sigmas
     own heading was 30-45 mdeg off at lag 1)."""
     K = int(inp.options.get("fused_map_first_steps", sig.map_first_steps))
     n = len(D) + 1
-    if K <= 0 or n < K + 2 or not sig.scan_pairs or not inp.options.get("fused_scan_pairs", True):
+    if (
+        K <= 0
+        or n < K + MIN_MAP_FRAMES
+        or not sig.scan_pairs
+        or not inp.options.get("fused_scan_pairs", True)
+    ):
         return
     T = odometry_run(inp).T_odom_base.copy()
     map_frames = np.arange(K, min(n, K + sig.map_first_frames), dtype=np.int64)
