@@ -823,9 +823,10 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
             rail = None
     else:
         health.warn("no rails found: fused runs without the rail constraint")
+    T_first = None
     if n >= 2:
         D = odometry_deltas(inp)
-        _map_first_steps(inp, D, health, sig)
+        T_first = _map_first_steps(inp, D, health, sig)
     else:
         D = np.zeros((0, 4, 4))
     d_t, d_R = D[:, :3, 3].copy(), D[:, :3, :3].copy()
@@ -872,7 +873,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     if rail is None:
         # Nothing else fixes the absolute attitude: the INS's is taken as is.
         bias_sigma[:3] = 0.005 * DEG
-    odo_pairs = _odometry_pairs(inp, w_t, w_r, zupt, degenerate, health, sig)
+    odo_pairs = _odometry_pairs(inp, w_t, w_r, zupt, degenerate, health, sig, T_first)
     if odo_pairs is not None and odo_pairs["yaw_offset"] and n >= 2:
         D_base = turn_lidar_poses(D, odo_pairs["yaw_offset"])
         d_t, d_R = D_base[:, :3, 3].copy(), D_base[:, :3, :3].copy()
@@ -1046,8 +1047,10 @@ def _odometry_pairs(
     degenerate: bool,
     health: Health,
     sig: Sigmas,
+    T_odom: F64 | None = None,
 ) -> dict | None:
-    """KISS-ICP's relative positions over ``sig.odo_pair_lags`` frames as measurements.
+    """KISS-ICP's relative positions over ``sig.odo_pair_lags`` frames as measurements
+    (its poses, or ``T_odom`` (n, 4, 4): the same with the first frames refined).
 
     A pair (k, k + lag) is kept when every step between its frames is a full-weight ICP
     step (no skipped, slipping or degenerate step, no standstill: those steps' own
@@ -1061,7 +1064,7 @@ def _odometry_pairs(
     if not lags or len(w_t) == 0:
         return None
     try:
-        T = odometry_run(inp).T_odom_base
+        T = odometry_run(inp).T_odom_base if T_odom is None else T_odom
     except Exception as exc:
         health.warn(f"fused: no odometry pairs ({exc})")
         return None
@@ -1105,12 +1108,14 @@ def _odometry_pairs(
 MIN_MAP_FRAMES = 6
 
 
-def _map_first_steps(inp: LocalizationInput, D: F64, health: Health, sig: Sigmas) -> None:
+def _map_first_steps(inp: LocalizationInput, D: F64, health: Health, sig: Sigmas) -> F64 | None:
     """KISS-ICP's first ``sig.map_first_steps`` steps re-registered against a mature local
     map: frames ``K - 1`` down to 0 each registered (:func:`.scan_pairs.register_to_map`,
     point-to-plane) onto the scans of frames ``K`` to ``K + sig.map_first_frames - 1``
     merged with KISS-ICP's poses, and ``D`` (n-1, 4, 4) rewritten from the refined poses,
-    in place. Frames whose registration fails a gate keep KISS-ICP's pose.
+    in place; returns KISS-ICP's poses (n, 4, 4) with the refined first ones (for the
+    odometry pairs), None where nothing was done. Frames whose registration fails a gate
+    keep KISS-ICP's pose.
 
     KISS-ICP registers its first frames against a local map of one to three scans: on the
     sparse matrix cells those steps were 50-80 mdeg of heading off, and every later pose
@@ -1126,7 +1131,7 @@ def _map_first_steps(inp: LocalizationInput, D: F64, health: Health, sig: Sigmas
         or not sig.scan_pairs
         or not inp.options.get("fused_scan_pairs", True)
     ):
-        return
+        return None
     T = odometry_run(inp).T_odom_base.copy()
     map_frames = np.arange(K, min(n, K + sig.map_first_frames), dtype=np.int64)
     done = 0
@@ -1137,6 +1142,7 @@ def _map_first_steps(inp: LocalizationInput, D: F64, health: Health, sig: Sigmas
             done += 1
     D[:K] = np.linalg.inv(T[:K]) @ T[1 : K + 1]
     health.metrics["fused_first_frames_to_map"] = float(done)
+    return T
 
 
 #: Fewest closures (:func:`.scan_pairs.closure_factor`) to scale the scan pairs by.
