@@ -30,6 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from geometry.transforms import make_T
 
 F64 = NDArray[np.float64]
 
@@ -102,7 +105,5 @@ def lidar_yaw_offset(
 def turn_lidar_poses(T: F64, delta: float) -> F64:
     """Relative poses (..., 4, 4) measured in a cloud turned by ``delta`` (rad) about the base
     z axis, expressed in the base: ``R T R^T`` with ``R = Rz(-delta)``."""
-    c, s = np.cos(delta), np.sin(delta)
-    R = np.eye(4)
-    R[:2, :2] = [[c, s], [-s, c]]
+    R = make_T(Rotation.from_rotvec([0.0, 0.0, -delta]).as_matrix(), np.zeros(3))
     return R @ T @ R.T
