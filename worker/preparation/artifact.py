@@ -61,7 +61,7 @@ INFORMATION_FILE = "pose_information.npz"
 #: Revision of the preparation's results: bumped whenever a change of the code changes what
 #: a preparation of the same sequence with the same config produces (a strategy's weights,
 #: the centreline fit...), so that artifacts cached by an older release are not reused.
-PREPARATION_REVISION = 13
+PREPARATION_REVISION = 14
 
 FILES = (
     "poses.csv",

@@ -85,6 +85,7 @@ from worker.preparation.localization.odometry import (
     odometry_track,
 )
 from worker.preparation.localization.rails import RailsStrategy, orientation_noise, rail_frames
+from worker.preparation.localization.scan_errors import with_scan_errors
 from worker.preparation.localization.scan_pairs import (
     closure_factor,
     register_pairs,
@@ -220,6 +221,11 @@ class Sigmas:
     #: pairs on straight track and taken out of every lidar-derived relative pose (the
     #: steps and the pairs). The option ``fused_lidar_yaw: false`` turns it off.
     lidar_yaw: bool = True
+    #: Share of an odometry step's variance that adds up over steps as a random walk in
+    #: the solution's information (the pose covariance behind the placement bound); the
+    #: rest is the per-scan registration error, which does not add up (:mod:`.scan_errors`;
+    #: 1: independent steps).
+    odo_drift_share: float = 0.25
     #: Estimate the INS wander from the whole solution (:func:`wander_factors`).
     estimate_wander: bool = True
     #: Estimate the rotation smoothness per axis from the solution (:func:`motion_factors`).
@@ -1800,12 +1806,38 @@ def motion_factors(pb: Problem, red: tuple[F64, F64, F64]) -> F64 | None:
     return np.where(den > MOTION_MIN_REDUNDANCY, np.sqrt(num / np.maximum(den, 1e-12)), 1.0)
 
 
+def _with_scan_errors(pb: Problem, J: csc_matrix, w: F64) -> tuple[csc_matrix, F64]:
+    """The odometry steps as differences of per-scan errors (:mod:`.scan_errors`)."""
+    n = pb.n
+    if n < 2:
+        return J, w
+    offs = _block_offsets(pb)
+    rows = np.arange(3 * (n - 1)).reshape(n - 1, 3)
+    a_t = pb.w_odo_t / pb.s_odo("odo_t")
+    a_r = pb.w_odo_r / pb.s_odo("odo_r")
+    # a registration of its own at full weight (not a standstill, no slip, not degenerate
+    # along the track): a step the odometry was unsure of drifts as it goes
+    moving = ~pb.zupt if len(pb.zupt) else np.ones(n - 1, dtype=bool)
+    w_r_full = np.max(pb.w_odo_r[moving], axis=0) if np.any(moving) else np.zeros(3)
+    use = (
+        moving
+        & np.all(pb.w_odo_t >= 0.99 / pb.sig.odo_t, axis=1)
+        & np.all(pb.w_odo_r >= 0.99 * w_r_full, axis=1)
+    )
+    return with_scan_errors(
+        J, w, offs["odo_t"] + rows, np.broadcast_to(a_t, (n - 1, 3)),
+        offs["odo_r"] + rows, np.broadcast_to(a_r, (n - 1, 3)), use, pb.sig.odo_drift_share,
+    )  # fmt: skip
+
+
 def information(pb: Problem, x: F64) -> PoseInformation:
     """The solution's information matrix J^T W J (Huber weights at ``x``; frame k's
     columns are its rotation vector then position, as :class:`PoseInformation` has them)
     and its variance factor: the robust chi-square scale of the measurements' normalised
     residuals (not the priors'), at least 1 (a solution whose residuals spread more than
-    their sigmas is less certain than its information says)."""
+    their sigmas is less certain than its information says). The odometry steps count as
+    differences of per-scan errors (:mod:`.scan_errors`, ``Sigmas.odo_drift_share``): per-
+    scan error columns follow the problem's own, marginalised with them."""
     r = residuals(x, pb)
     S = _cached_sparsity(pb)
     J = jacobian(x, r, pb, S, _column_groups(pb.n, pb.n_knots, _frame_period(pb)))
@@ -1813,10 +1845,13 @@ def information(pb: Problem, x: F64) -> PoseInformation:
     c = pb.sig.huber
     w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
     if pb.odo_pairs is not None:
-        # The pairs re-use the lag-1 steps' scans: they shape the estimate (the odometry's
-        # error does not add up like independent steps) but are no new information.
+        # KISS-ICP's pairs (along, lateral) are its poses' differences, the sums of its
+        # steps: they shape the estimate but are no new information. The fine pairs (third
+        # column) are registrations of their own, scan against scan: they are.
         i0 = _block_offsets(pb)["odo_pair"]
-        w[i0 : i0 + 3 * len(pb.odo_pairs["k"])] = 0.0
+        q = np.arange(len(pb.odo_pairs["k"]))
+        w[(i0 + 3 * q[:, None] + np.array([0, 1])).ravel()] = 0.0
+    J, w = _with_scan_errors(pb, J, w)
     A = (J.T.multiply(w[None, :]).tocsc() @ J).tocsc()
     meas = np.concatenate([b.ravel() for b in measurement_blocks(pb, x).values()])
     meas = meas[meas != 0.0]
