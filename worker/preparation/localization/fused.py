@@ -1045,6 +1045,21 @@ def _velocity_steps(
     return {"k": k, "d": d, "w": 1.0 / (sigma_v * dt[k])}
 
 
+def full_weight_steps(
+    w_t: F64, w_r: F64, zupt: NDArray[np.bool_], odo_t: float, along: bool
+) -> NDArray[np.bool_]:
+    """(n-1,) the odometry steps at full weight: moving (not a zero-velocity step), lateral
+    (and vertical, weighted with it) at ``1 / odo_t``, along the track too if ``along``,
+    and a rotation weight the largest of the moving steps' (no skipped, slipping or
+    degenerate step). w_t, w_r : (n-1, 3) the steps' weights (:func:`_odometry_weights`)."""
+    moving = ~zupt if len(zupt) else np.ones(len(w_t), dtype=bool)
+    w_r_full = np.max(w_r[moving], axis=0) if np.any(moving) else np.zeros(3)
+    full = moving & (w_t[:, 1] >= 0.99 / odo_t) & np.all(w_r >= 0.99 * w_r_full, axis=1)
+    if along:
+        full &= w_t[:, 0] >= 0.99 / odo_t
+    return full
+
+
 def _odometry_pairs(
     inp: LocalizationInput,
     w_t: F64,
@@ -1074,11 +1089,7 @@ def _odometry_pairs(
     except Exception as exc:
         health.warn(f"fused: no odometry pairs ({exc})")
         return None
-    # a step at full weight: its rotation weight is the largest of the moving steps'
-    w_r_full = np.max(w_r[~zupt], axis=0) if np.any(~zupt) else np.zeros(3)
-    full = (w_t[:, 1] >= 0.99 / sig.odo_t) & np.all(w_r >= 0.99 * w_r_full, axis=1) & ~zupt
-    if not degenerate:
-        full &= w_t[:, 0] >= 0.99 / sig.odo_t
+    full = full_weight_steps(w_t, w_r, zupt, sig.odo_t, along=not degenerate)
     bad = np.concatenate([[0], np.cumsum(~full)])  # bad steps before frame i
     ks, js, wt = [], [], []
     for L in lags:
@@ -1815,15 +1826,9 @@ def _with_scan_errors(pb: Problem, J: csc_matrix, w: F64) -> tuple[csc_matrix, F
     rows = np.arange(3 * (n - 1)).reshape(n - 1, 3)
     a_t = pb.w_odo_t / pb.s_odo("odo_t")
     a_r = pb.w_odo_r / pb.s_odo("odo_r")
-    # a registration of its own at full weight (not a standstill, no slip, not degenerate
-    # along the track): a step the odometry was unsure of drifts as it goes
-    moving = ~pb.zupt if len(pb.zupt) else np.ones(n - 1, dtype=bool)
-    w_r_full = np.max(pb.w_odo_r[moving], axis=0) if np.any(moving) else np.zeros(3)
-    use = (
-        moving
-        & np.all(pb.w_odo_t >= 0.99 / pb.sig.odo_t, axis=1)
-        & np.all(pb.w_odo_r >= 0.99 * w_r_full, axis=1)
-    )
+    # a registration of its own at full weight, along the track too: a step the odometry
+    # was unsure of drifts as it goes
+    use = full_weight_steps(pb.w_odo_t, pb.w_odo_r, pb.zupt, pb.sig.odo_t, along=True)
     return with_scan_errors(
         J, w, offs["odo_t"] + rows, np.broadcast_to(a_t, (n - 1, 3)),
         offs["odo_r"] + rows, np.broadcast_to(a_r, (n - 1, 3)), use, pb.sig.odo_drift_share,
