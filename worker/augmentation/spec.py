@@ -190,8 +190,11 @@ class SceneObject(_Section):
 class RenderSpec(_Section):
     """Render and composite options.
 
-    png_compression : zlib level of the augmented PNGs. The level the input used cannot be
-        read back from a PNG, so the default is 1 (fast); the I/O floor uses the same.
+    png_compression : zlib level of the rows of the augmented PNGs that the objects change
+        (the rows around them keep the input's compressed bytes where the input is 8-bit
+        RGB and not interlaced: worker/osdar/png_splice.py). The level the input used
+        cannot be read back from a PNG, so the default is 1 (fast); the I/O floor uses the
+        same for its whole re-encode.
     blur, lab_match, shadow_strength : see :func:`renderer.composite.composite`.
     pixel_offset : shift the object by the calibration point's mean residual per camera
         (needs clicks in the preparation), compensating a constant calibration error.
