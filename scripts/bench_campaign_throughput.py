@@ -116,6 +116,7 @@ class Run:
     singles_load: str = ""
     split: str = ""  # cores by process kind over the campaign (CpuSplit)
     thread_split: str = ""  # the worker children's threads by name
+    idle_parts: list[float] = field(default_factory=list)  # idle cores per tenth of it
     task_s: dict[str, tuple[int, float]] = field(default_factory=dict)  # from the worker log
     single_stages: dict[str, float] = field(default_factory=dict)
 
@@ -210,6 +211,7 @@ def run_campaign(
             end = _wait_campaign(svc, c["id"], tuple(s for s in (*TERMINAL, "PARTIAL")), 3600)
             run.wall_s = time.perf_counter() - t0
         run.split = split.line()
+        run.idle_parts = split.idle_by_part(10)
         run.thread_split = ", ".join(f"{n} x{k} {on:.2f} on / {w:.2f} waiting"
                                      for n, k, on, w in split.threads()[:8])  # fmt: skip
         run.thread_split += "; main threads {:.2f} on / {:.2f} waiting / {:.2f} sleeping".format(
@@ -294,6 +296,8 @@ def report(ones: list[Run], two: Run) -> None:
         print(f"  stage seconds per variant: {stage_line(r.stages)}; the processes inside a "
               f"stage {100 * r.in_stages:.0f} % of the time")  # fmt: skip
         print(f"  cores over the campaign: {r.split}")
+        tenths = " ".join(f"{x:.2f}" for x in r.idle_parts)
+        print(f"  idle cores by tenth of the campaign: {tenths}")
         print(f"  the worker children's threads (cores): {r.thread_split}")
         print("  tasks (count, seconds): " + ", ".join(
             f"{k} {n} {sec:.1f}" for k, (n, sec) in sorted(r.task_s.items())))  # fmt: skip

@@ -9,6 +9,7 @@ the jobs, and the machine's load averages beside every figure (the machine is sh
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import threading
 import time
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import psutil
 import redis
 from fastapi.testclient import TestClient
@@ -136,6 +138,7 @@ class CpuSplit:
         self._thread = threading.Thread(target=self._loop, name="cpu-split", daemon=True)
         self._busy0 = self._busy1 = (0.0, 0.0)
         self._t0 = self._t1 = 0.0
+        self._series: list[tuple[float, float, float]] = []  # (time, busy s, total s)
 
     def _sample(self) -> None:
         try:
@@ -175,6 +178,7 @@ class CpuSplit:
             self._last[key] = v
         self._t1 = time.perf_counter()
         self._busy1 = _machine_busy_s()
+        self._series.append((self._t1, *self._busy1))
 
     def _loop(self) -> None:
         while not self._stop.wait(self.interval_s):
@@ -244,6 +248,22 @@ class CpuSplit:
         wanting = [on + wait for (pid, tid), (name, on, wait) in self._threads_last.items()
                    if pid == tid or name.startswith("llvmpipe")]  # fmt: skip
         return sum(wanting) / w
+
+    def idle_by_part(self, parts: int = 10) -> list[float]:
+        """The machine's idle cores in each of ``parts`` equal parts of the window (from the
+        once-a-second samples): whether the idle time is the start, the end or spread."""
+        if len(self._series) < 2:
+            return []
+        t = np.array([x[0] for x in self._series])
+        busy = np.array([x[1] for x in self._series])
+        total = np.array([x[2] for x in self._series])
+        edges = np.linspace(t[0], t[-1], parts + 1)
+        out = []
+        for a, b in itertools.pairwise(edges):
+            ba, bb = (np.interp(x, t, busy) for x in (a, b))
+            ta, tb = (np.interp(x, t, total) for x in (a, b))
+            out.append(float(((tb - ta) - (bb - ba)) / (b - a)))
+        return out
 
     def line(self) -> str:
         c = self.cores()
