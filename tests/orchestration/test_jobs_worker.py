@@ -275,11 +275,12 @@ def test_a_termination_inside_a_stage_leaves_the_job_to_redelivery(
 
 
 def test_a_chunk_delivered_again_is_counted_once_and_not_redone(
-    tmp_path: Path, seq_folder: Path
+    tmp_path: Path, seq_folder: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The join before finish (chunk_join.py) with the real stages: each chunk recorded
-    once; a chunk delivered again after its record returns it without a stage; the claim
-    hands out one finish token, and finish reads the chunks from the job's row."""
+    """The join before finish (chunk_join.py) with the real stages: the plan is made by
+    prepare (no chunk plans again); each chunk recorded once; a chunk delivered again
+    after its record returns it without a stage; the claim hands out one finish token,
+    and finish reads the chunks from the job's row."""
     from worker.orchestration import chunk_join, runner
 
     settings = _migrated(_settings(tmp_path))
@@ -289,6 +290,13 @@ def test_a_chunk_delivered_again_is_counted_once_and_not_redone(
     kw["settings"] = settings
     runner.fetch_sequence(job_id, **kw)
     runner.prepare_for_job(job_id, **kw)
+    run = runner.JobRun(job_id, kw["attempt"], settings)
+    assert (run.workdir / "plan.npz").is_file() and run.store.exists(f"{run.prefix}plan.npz")
+
+    def planned_again(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("a chunk computed the plan that prepare made")
+
+    monkeypatch.setattr(runner, "plan_augmentation", planned_again)
     plan = runner.plan_chunks(job_id, **kw)
     assert len(plan) == 2 and _job(settings, job_id).chunks_total == 2
     first = runner.augment_chunk(job_id, 0, plan[0], **kw)
@@ -305,7 +313,6 @@ def test_a_chunk_delivered_again_is_counted_once_and_not_redone(
     assert _job(settings, job_id).chunks_done == {"0": first, "1": second}
     runner.finish_job(job_id, token=token, **kw)
     assert _job(settings, job_id).finish_started_at is not None
-    run = runner.JobRun(job_id, kw["attempt"], settings)
     folder = runner.output_sequence(run)  # assembled here: no rebuild from the store
     assert (folder.parent / ".complete").is_file()
     assert len(list(folder.rglob("*.png"))) == 2 * 4  # 2 cameras x 4 frames, both chunks

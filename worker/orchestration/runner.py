@@ -423,7 +423,8 @@ def _prepare(run: JobRun, progress: Any = None) -> PreparedSequence:
 def prepare_for_job(
     job_id: str, *, attempt: int | None = None, settings: Settings | None = None
 ) -> PreparedSequence:
-    """Preparation of the job's sequence (shared by every job on it); returns it."""
+    """Preparation of the job's sequence (shared by every job on it) and the job's
+    augmentation plan (:func:`_plan`); returns the preparation."""
     run = _run(job_id, attempt, settings)
     with _stage(run, "prepare"):
 
@@ -447,6 +448,10 @@ def prepare_for_job(
             },
             settings=run.settings,
         )
+        # The plan too: every chunk reads it, so no chunk of the job sleeps while another
+        # computes it (meanwhile the other worker processes take other jobs' stages).
+        state.set_stage(run.job_id, run.attempt, "prepare: plan", settings=run.settings)
+        _plan(run)
         return prepared
 
 
