@@ -451,7 +451,7 @@ def prepare_for_job(
         # The plan too: every chunk reads it, so no chunk of the job sleeps while another
         # computes it (meanwhile the other worker processes take other jobs' stages).
         state.set_stage(run.job_id, run.attempt, "prepare: plan", settings=run.settings)
-        _plan(run)
+        _plan(run, prepared)
         return prepared
 
 
@@ -475,7 +475,7 @@ def _augment_spec(run: JobRun) -> AugmentSpec:
     return AugmentSpec.from_job_spec(spec, assets=assets)
 
 
-def _plan(run: JobRun) -> Plan:
+def _plan(run: JobRun, prepared: PreparedSequence | None = None) -> Plan:
     """The augmentation plan of this attempt: computed once, shared through the store.
 
     Every chunk needs it; the first worker to need it computes and uploads it, the others
@@ -489,15 +489,15 @@ def _plan(run: JobRun) -> Plan:
         local.parent.mkdir(parents=True, exist_ok=True)
         with key_lock(run.workdir, "plan"):
             if not local.is_file():
-                plan = _make_plan(run, local)
+                plan = _make_plan(run, local, prepared)
                 if plan is not None:
                     return plan
     return read_plan(local)  # a typed record, validated as it is read
 
 
-def _make_plan(run: JobRun, local: Path) -> Plan | None:
-    """The plan into ``local``: from the store (None returned), or computed and uploaded
-    (returned)."""
+def _make_plan(run: JobRun, local: Path, prepared: PreparedSequence | None) -> Plan | None:
+    """The plan into ``local``: from the store (None returned), or computed from
+    ``prepared`` (read from the cache when None) and uploaded (returned)."""
     key = f"{run.prefix}plan.npz"
     # a worker killed half-way leaves only its private temporary file: the shared file
     # appears by an atomic rename
@@ -506,7 +506,8 @@ def _make_plan(run: JobRun, local: Path) -> Plan | None:
         run.store.get_file(key, tmp)
         tmp.replace(local)
         return None
-    prepared = _prepare(run)
+    if prepared is None:
+        prepared = _prepare(run)
     plan = plan_augmentation(_local_sequence(run), _augment_spec(run), prepared)
     if prepared.calibration is not None:
         plan.info["calibration"] = prepared.calibration.summary()

@@ -57,9 +57,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from worker.osdar.images import PNG_SIGNATURE
+
 logger = logging.getLogger(__name__)
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 #: Adler-32 modulus (RFC 1950, 9).
 ADLER_MOD = 65521
 #: The longest back-reference distance of deflate (RFC 1951): the tail starts at least this
