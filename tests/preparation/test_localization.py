@@ -328,7 +328,13 @@ def test_ins_wander_measures_a_slow_heading_drift() -> None:
     assert np.all(np.degrees(w.rotation_rad[:2]) < 1e-6)
     assert w.position_m[0] < 1e-6  # the jump touches 2 of 90 pairs
     assert w.position_m[1] < 0.05
+    assert not w.shortened
     assert ins_wander(T_ins[:4], T_odo[:4], t[:4], np.ones(4, dtype=bool), 1.0) is None
+    # 10 frames: 5 pairs at a lag of 5 frames, the steady drift scaled up to 1 s
+    short = ins_wander(T_ins[:10], T_odo[:10], t[:10], np.ones(10, dtype=bool), lag_s=1.0)
+    assert short is not None and short.shortened and short.pairs == 5
+    assert abs(short.measured_lag_s - 0.5) < 1e-9 and abs(short.lag_s - 1.0) < 1e-9
+    assert abs(np.degrees(short.rotation_rad[2]) - 0.2) < 0.01, np.degrees(short.rotation_rad)
 
 
 @pytest.fixture(scope="module")

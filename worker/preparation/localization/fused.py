@@ -1305,6 +1305,19 @@ def _bias_step_sigmas(
         health.metrics["fused_ins_wander_source_heading"] = 1.0
     out[:3] = np.clip(rot, floor, a_cap)  # about the track's axes (Problem.R_bias)
     out[3:] = np.clip(w.position_m, p_floor, p_cap)
+    if w.shortened:
+        # Over a lag shorter than the knot spacing (a sequence too short for enough pairs
+        # at the knots' lag) a large wander is plain (an osdar23-like INS turning 0.2 deg a
+        # second against the odometry), a small one is not shown: its few overlapping
+        # pairs mostly measure the odometry's noise. So it only loosens the default (with
+        # the default 0.1 deg the fused heading of a 10-frame straight sparse run followed
+        # the INS's turn, 16 px of anchor error against the odometry's 3; held to a
+        # good INS's measured 0.01 deg a 10-frame station's went from 0.4 to 0.8 px).
+        # (roll, pitch and heading measured by the ground pairs and the course keep theirs)
+        from_odometry = np.array([level is None, level is None, heading is None])
+        out[:3] = np.where(from_odometry, np.maximum(out[:3], a_default), out[:3])
+        out[3:] = p_default
+        health.metrics["fused_ins_wander_lag_s"] = w.measured_lag_s
     if degenerate:
         out[3:] = p_floor
     for name, v in zip(("roll", "pitch", "heading"), rot, strict=True):

@@ -27,6 +27,9 @@ F64 = NDArray[np.float64]
 OUTLIER_SIGMAS = 5.0
 #: At least this many frame pairs to measure anything.
 MIN_PAIRS = 5
+#: Shortest lag (frames) a short sequence's wander is measured over: the one-step
+#: difference is the white noise taken out of it.
+MIN_LAG = 2
 
 
 @dataclass(frozen=True)
@@ -35,13 +38,21 @@ class InsWander:
 
     rotation_rad : (3,) about the base axes (roll x, pitch y, heading z), rad.
     position_m : (3,) along the world axes (east, north, up), m.
-    lag_s : the lag it was measured over (s); pairs : how many frame pairs.
+    lag_s : the lag it is scaled to (s); pairs : how many frame pairs.
+    measured_lag_s : the lag it was measured over: shorter than ``lag_s`` on a sequence too
+    short for enough pairs at ``lag_s`` (then scaled up as a steady drift, in proportion).
     """
 
     rotation_rad: F64
     position_m: F64
     lag_s: float
     pairs: int
+    measured_lag_s: float
+
+    @property
+    def shortened(self) -> bool:
+        """Measured over a shorter lag than asked (a short sequence)."""
+        return self.measured_lag_s < self.lag_s - 1e-9
 
 
 def inliers(x: F64) -> NDArray[np.bool_]:
@@ -79,9 +90,11 @@ def ins_wander(
     if n < 2:
         return None
     dt = float(np.median(np.diff(times)))
-    lag = max(1, round(lag_s / dt)) if dt > 0 else 1
-    i = np.arange(n - lag)
-    i = i[covered[i] & covered[i + lag]]
+    want = max(1, round(lag_s / dt)) if dt > 0 else 1
+    lag, i = want, _pairs(covered, want)
+    while len(i) < MIN_PAIRS and lag > MIN_LAG:
+        lag -= 1
+        i = _pairs(covered, lag)
     if len(i) < MIN_PAIRS:
         return None
     rot, pos = _differences(T_ins, T_odo, i, lag)
@@ -96,12 +109,23 @@ def ins_wander(
             rot1, pos1 = _differences(T_ins, T_odo, one, 1)
             rot_var = np.maximum(rot_var - robust_rms(rot1) ** 2, 0.0)
             pos_var = np.maximum(pos_var - robust_rms(pos1) ** 2, 0.0)
+    # a steady drift grows in proportion to the lag (a random walk would grow as its
+    # square root: the proportion is the larger, so the INS is not trusted beyond what
+    # the short sequence showed)
+    scale = want / lag
     return InsWander(
-        rotation_rad=np.sqrt(rot_var),
-        position_m=np.sqrt(pos_var),
-        lag_s=lag * dt,
+        rotation_rad=np.sqrt(rot_var) * scale,
+        position_m=np.sqrt(pos_var) * scale,
+        lag_s=want * dt,
         pairs=len(i),
+        measured_lag_s=lag * dt,
     )
+
+
+def _pairs(covered: NDArray[np.bool_], lag: int) -> NDArray[np.int64]:
+    """Frames i with an INS record at i and at i + lag."""
+    i = np.arange(len(covered) - lag)
+    return i[covered[i] & covered[i + lag]]
 
 
 def _differences(T_ins: F64, T_odo: F64, i: NDArray[np.int64], lag: int) -> tuple[F64, F64]:
