@@ -583,3 +583,46 @@ def test_odometry_makes_the_ground_pairs_as_it_goes(results: dict) -> None:
     for a, b in zip(run.ground_pairs, after, strict=True):
         assert np.array_equal(a.T_k_j, b.T_k_j)
     assert results["fire_site"]["fused"].health.metrics["fused_ground_pairs"] > 20
+
+
+def _heading_errors_deg(T_est: np.ndarray, T_true: np.ndarray, lag: int) -> np.ndarray:
+    """(n - lag,) heading part (about the base z axis) of the relative rotation errors
+    over ``lag`` frames, deg."""
+    a = np.linalg.solve(T_est[:-lag], T_est[lag:])
+    b = np.linalg.solve(T_true[:-lag], T_true[lag:])
+    E = np.swapaxes(b[:, :3, :3], 1, 2) @ a[:, :3, :3]
+    return np.degrees(np.abs(Rotation.from_matrix(E).as_rotvec()[:, 2]))
+
+
+def test_fused_keeps_a_degenerate_odometry_heading(tmp_path: Path) -> None:
+    """A straight sparse corridor at 0.3 lidar density: KISS-ICP is degenerate along the
+    track but holds its heading (0.030 deg over 30 frames here), the osdar23 INS's heading
+    wanders (0.11). With the degenerate run's heading at a third of its weight fused's was
+    0.150 deg, worse than both inputs. Bound: not degraded, i.e. at most 2x the better
+    input (issue 16's threshold for "truly bad"); measured 0.059 (1.95x). The issue's goal,
+    within 10 % of the better input, is the matrix's (``fused_within_10pct_of_inputs``)
+    and is missed on this heading."""
+    from worker.synth.generator import SynthConfig, generate
+
+    folder = generate(
+        tmp_path / "corridor",
+        SynthConfig(
+            scene="straight_sparse",
+            frames=60,
+            scale=0.05,
+            lidar_density=0.3,
+            seed=1,
+            ins_profile="osdar23",
+            cameras=(),
+        ),
+    ).folder
+    inp = _input(folder)
+    gt = PoseTrack.from_csv(folder / "ground_truth/poses.csv").interpolate(
+        inp.times, max_extrapolation_s=0.2
+    )
+    lag30 = {}
+    for name in ("ins", "odometry", "fused"):
+        T = run_strategy(name, inp).track.T
+        lag30[name] = float(np.median(_heading_errors_deg(T, gt, 30)))
+    assert _warned(run_strategy("odometry", inp), "degenerate"), "not the degenerate case"
+    assert lag30["fused"] <= 2.0 * min(lag30["ins"], lag30["odometry"]), lag30
