@@ -48,36 +48,3 @@ def create_context(require: tuple[int, int] = (3, 3)) -> moderngl.Context:
     )
     _CONTEXT, _CONTEXT_PID = ctx, pid
     return ctx
-
-
-_GL_FLUSH: object | None = None
-
-
-def flush() -> None:
-    """``glFlush`` on the current context: hands the queued draw calls to the driver, so
-    that llvmpipe's rasterizer threads work on them while the caller goes on (a read-back
-    then finds them done). moderngl has no flush (only the blocking ``finish``), so the
-    GL library's own entry point is called through ctypes; where it cannot be loaded this
-    is a no-op and the read-back flushes as before."""
-    global _GL_FLUSH
-    if _GL_FLUSH is None:
-        _GL_FLUSH = _load_flush()
-    if _GL_FLUSH:
-        _GL_FLUSH()  # type: ignore[operator]
-
-
-def _load_flush() -> object:
-    import ctypes
-    import ctypes.util
-
-    for name in ("libOpenGL.so.0", "libGL.so.1", ctypes.util.find_library("GL")):
-        if not name:
-            continue
-        try:
-            fn = ctypes.CDLL(name).glFlush
-        except (OSError, AttributeError):
-            continue
-        fn.restype, fn.argtypes = None, []
-        return fn
-    log.info("glFlush not found: renders are rasterized at their read-back")
-    return False

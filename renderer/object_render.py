@@ -56,7 +56,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from geometry.camera import TOL, CameraModel, gl_projection
 from geometry.transforms import invert_T
-from renderer.gl_context import create_context, flush
+from renderer.gl_context import create_context
 from renderer.lighting import Lighting
 from renderer.mesh import Material, ObjectMesh, ProxyMesh
 
@@ -561,15 +561,6 @@ class _DepthPass:
     sm_size: int
 
 
-@dataclass
-class PendingRender:
-    """A render submitted to the rasterizer (:meth:`ObjectRenderer.submit`): ``done`` when
-    nothing was drawn (the object out of view), else the read-back's arguments."""
-
-    done: ObjectRender | None
-    work: tuple | None = None
-
-
 class ObjectRenderer:
     """Renders :class:`ObjectMesh` instances into one camera's distorted image.
 
@@ -607,7 +598,6 @@ class ObjectRenderer:
         )
         self._prog_sm = self.ctx.program(vertex_shader=_SM_VERTEX, fragment_shader=_SM_FRAGMENT)
         self._targets: _Targets | None = None
-        self._pending = False  # a submit() not yet finished (its targets are in use)
         self._sm: tuple[int, moderngl.Texture, moderngl.Renderbuffer, moderngl.Framebuffer] | None
         self._sm = None
         self._obj_cache: list[_Upload] = []
@@ -837,24 +827,6 @@ class ObjectRenderer:
         -------
         ObjectRender in the distorted image of ``self.camera`` (ROI only).
         """
-        return self.finish(self.submit(obj, T_world_obj, T_world_base, proxies, light, near))
-
-    def submit(
-        self,
-        obj: ObjectMesh,
-        T_world_obj: ArrayLike,
-        T_world_base: ArrayLike,
-        proxies: ProxyMesh | None = None,
-        light: Lighting | None = None,
-        near: float = 0.05,
-    ) -> PendingRender:
-        """The first half of :meth:`render`: the draw calls, flushed to the rasterizer,
-        which works on them while the caller does something else (llvmpipe's threads
-        rasterize a flushed scene on their own); :meth:`finish` reads and resolves it.
-        Another renderer's work may come in between, this renderer's may not: its render
-        targets hold one pending render (a second submit before the finish raises)."""
-        if self._pending:
-            raise RuntimeError(f"{self.camera.name}: submit() again before finish()")
         light = light if light is not None else Lighting()
         T_world_obj = np.asarray(T_world_obj, dtype=np.float64)
         T_world_base = np.asarray(T_world_base, dtype=np.float64)
@@ -864,7 +836,7 @@ class ObjectRenderer:
             raise ValueError(f"near must be > 0, got {near}")
         view = _View.of(self.camera, T_world_obj, T_world_base, light)
         anchor_uv, distance, motion = self._anchor(view.T_opt_obj)
-        empty = PendingRender(self._empty(anchor_uv, distance, motion))
+        empty = self._empty(anchor_uv, distance, motion)
 
         shadows = proxies is not None and len(proxies.faces) > 0 and light.casts_shadows
         pts, edges = self._extent_points(obj, view, shadows)
@@ -910,33 +882,12 @@ class ObjectRenderer:
         self._draw_object(fbo, vp, obj, view, light, depth, texel)
         if proxies is not None and len(proxies.faces):
             self._draw_proxies(tg.fbo_proxy, vp, proxies, view, depth, shadows)
-        flush()
-        self._pending = True
-        return PendingRender(None, (fbo, vp, s, (pu0, pv0), roi, anchor_uv, distance, motion))
 
-    def discard(self, pending: PendingRender) -> None:
-        """Drop a :meth:`submit` whose result is not wanted (its caller failed): the
-        render targets are free again."""
-        if pending.done is None:
-            self._pending = False
-
-    def finish(self, pending: PendingRender) -> ObjectRender:
-        """Read back and resolve a :meth:`submit` (waits for the rasterizer if it is not
-        done)."""
-        if pending.done is not None:
-            return pending.done
-        if not self._pending:
-            raise RuntimeError(f"{self.camera.name}: finish() without a pending submit()")
-        fbo, vp, s, p0, roi, anchor_uv, distance, motion = pending.work
-        W_s, H_s = vp[2], vp[3]
-        try:
-            col = fbo.read(viewport=vp, components=4, attachment=0, dtype="f4")
-            aux = fbo.read(viewport=vp, components=4, attachment=1, dtype="f4")
-        finally:
-            self._pending = False
-        col = np.frombuffer(col, "f4").reshape(H_s, W_s, 4)
-        aux = np.frombuffer(aux, "f4").reshape(H_s, W_s, 4)
-        return self._resolve(col, aux, s, p0, roi, anchor_uv, distance, motion)
+        col = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=0, dtype="f4"), "f4")
+        aux = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=1, dtype="f4"), "f4")
+        col = col.reshape(H_s, W_s, 4)
+        aux = aux.reshape(H_s, W_s, 4)
+        return self._resolve(col, aux, s, (pu0, pv0), roi, anchor_uv, distance, motion)
 
     def _anchor(self, T_opt_obj: F64) -> tuple[F64, float, F64]:
         """The object origin's pixel, its distance (m) and its image motion (px per metre

@@ -300,31 +300,3 @@ def test_gathered_shadow_filter_equals_texel_fetches(cams, renderers):
         assert ra.roi == rb.roi and ra.shadow.max() > 0.5
         assert np.array_equal(ra.shadow, rb.shadow)
         assert np.array_equal(ra.color, rb.color)
-
-
-def test_submitted_renders_interleave_across_cameras(cams, renderers):
-    """submit() on two cameras' renderers, then finish() each: the same pixels as render()
-    one after the other (the second camera rasterizes while the first is read and
-    resolved); a second submit on one renderer before its finish is refused, and a
-    discarded submit frees it."""
-    T_wb = vehicle_pose()
-    obj = box((1.0, 2.0, 1.5))
-    T_a, T_b = place(T_wb, (25.0, 0.5, 0.0)), place(T_wb, (40.0, -1.0, 0.0))
-    ra = renderer(renderers, cams, "rgb_highres_center")
-    rb = renderer(renderers, cams, "rgb_center")
-    want_a, want_b = ra.render(obj, T_a, T_wb), rb.render(obj, T_b, T_wb)
-    pa, pb = ra.submit(obj, T_a, T_wb), rb.submit(obj, T_b, T_wb)
-    got_a, got_b = ra.finish(pa), rb.finish(pb)
-    for want, got in ((want_a, got_a), (want_b, got_b)):
-        assert want.roi == got.roi and want.roi is not None
-        for layer in ("color", "alpha", "depth", "shadow"):
-            np.testing.assert_array_equal(getattr(want, layer), getattr(got, layer))
-    pending = ra.submit(obj, T_a, T_wb)
-    with pytest.raises(RuntimeError, match="before finish"):
-        ra.submit(obj, T_a, T_wb)
-    ra.discard(pending)
-    np.testing.assert_array_equal(ra.render(obj, T_a, T_wb).alpha, want_a.alpha)
-    # an object out of view needs no read-back
-    behind = ra.submit(obj, place(T_wb, (-30.0, 0.0, 0.0)), T_wb)
-    assert behind.done is not None and ra.finish(behind).roi is None
-    assert ra.finish(ra.submit(obj, T_a, T_wb)).roi == want_a.roi  # the targets were free

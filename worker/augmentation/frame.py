@@ -302,67 +302,25 @@ def _bounded_motion(render: Any, speed_mps: float) -> Any:
     return dataclasses.replace(render, motion_uv_per_m=m * (MAX_MOTION_BLUR_PX / blur))
 
 
-@dataclass
-class _CameraScene:
-    """What one camera sees of a frame's objects: their meshes and poses, its pose."""
-
-    renderer: Any
-    meshes: list[ObjectMesh]
-    poses: list[F64]
-    T_world_base: F64
-
-    def submit(self, plan: Plan, name: str, i: int) -> Any:
-        """Object ``i``'s render, submitted (:meth:`ObjectRenderer.submit`)."""
-        pairs = zip(self.meshes, self.poses, strict=True)
-        others = [(m, p) for j, (m, p) in enumerate(pairs) if j != i]
-        return self.renderer.submit(
-            self.meshes[i], self.poses[i], self.T_world_base, occluders(plan.proxies, others),
-            plan.lights[name], near=NEAR_PLANE_M,
-        )  # fmt: skip
-
-
-def _camera_scene(plan: Plan, frame: int, name: str) -> _CameraScene:
-    objs = plan.objects
-    return _CameraScene(
-        camera_renderer(plan.cameras[name], plan.spec.render.antialias),
-        [o.mesh(name, frame, full=False) for o in objs],
-        [o.pose(name, frame) for o in objs],
-        plan.T_world_base[name][frame],
-    )
-
-
-def _submit_first(plan: Plan, frame: int, name: str, t: dict[str, float]) -> tuple:
-    """A camera's scene with its first object's render submitted: it rasterizes while
-    the frame's previous camera composites (None when there is no object)."""
-    tic = time.perf_counter()
-    scene = _camera_scene(plan, frame, name)
-    pending = scene.submit(plan, name, 0) if plan.objects else None
-    t["render"] += time.perf_counter() - tic
-    return scene, pending
-
-
 def _camera_frame(
-    plan: Plan,
-    frame: int,
-    name: str,
-    src: Path,
-    dest: Path,
-    t: dict[str, float],
-    first: tuple | None = None,
+    plan: Plan, frame: int, name: str, src: Path, dest: Path, t: dict[str, float]
 ) -> tuple[list[CameraRecord], list[CameraView | None], bool]:
     """poses -> render each object -> composite -> write for one camera; returns per
-    object (record, view) and whether pixels changed. ``first``: the camera's scene
-    with its first object's render already submitted (:func:`_submit_first`)."""
-    r = plan.spec.render
+    object (record, view) and whether pixels changed."""
+    cam, r = plan.cameras[name], plan.spec.render
+    T_world_base = plan.T_world_base[name][frame]
     objs = plan.objects
-    scene, pending = first if first is not None else _submit_first(plan, frame, name, t)
-    meshes, poses, T_world_base = scene.meshes, scene.poses, scene.T_world_base
-    renderer = scene.renderer
+    meshes = [o.mesh(name, frame, full=False) for o in objs]
+    poses = [o.pose(name, frame) for o in objs]
+    renderer = camera_renderer(cam, r.antialias)
     tic = time.perf_counter()
     renders = []
     for i in range(len(objs)):
-        p = pending if i == 0 else scene.submit(plan, name, i)
-        renders.append(renderer.finish(p))
+        others = [(meshes[j], poses[j]) for j in range(len(objs)) if j != i]
+        renders.append(renderer.render(
+            meshes[i], poses[i], T_world_base, occluders(plan.proxies, others),
+            plan.lights[name], near=NEAR_PLANE_M,
+        ))  # fmt: skip
     t["render"] += time.perf_counter() - tic
     speed = plan.speed_mps.get(frame, 0.0)
     offset = plan.pixel_offsets.get(name, (0.0, 0.0))
@@ -753,28 +711,18 @@ def augment_frame(plan: Plan, frame: int, out_root: Path) -> tuple[FrameRecord, 
     written: list[str] = []
     views: list[dict[str, CameraView]] = [{} for _ in range(n)]
     records: list[dict[str, CameraRecord]] = [{} for _ in range(n)]
-    names = [name for name in plan.cameras if name in uris]
-    nxt = _submit_first(plan, frame, names[0], t) if names else None
-    try:
-        for c, name in enumerate(names):
-            uri = uris[name]
-            first, nxt = nxt, None
-            # the next camera's first render rasterizes while this one composites
-            if c + 1 < len(names):
-                nxt = _submit_first(plan, frame, names[c + 1], t)
-            recs, vws, _ = _camera_frame(
-                plan, frame, name, uri_to_path(seq_root, uri), uri_to_path(out_root, uri), t,
-                first,
-            )  # fmt: skip
-            written.append(uri.lstrip("/"))
-            for k in range(n):
-                records[k][name] = recs[k]
-                if vws[k] is not None:
-                    views[k][name] = vws[k]  # type: ignore[assignment]
-    except BaseException:
-        if nxt is not None and nxt[1] is not None:  # the next camera's render not wanted
-            nxt[0].renderer.discard(nxt[1])
-        raise
+    for name in plan.cameras:
+        if name not in uris:
+            continue
+        uri = uris[name]
+        recs, vws, _ = _camera_frame(
+            plan, frame, name, uri_to_path(seq_root, uri), uri_to_path(out_root, uri), t
+        )
+        written.append(uri.lstrip("/"))
+        for k in range(n):
+            records[k][name] = recs[k]
+            if vws[k] is not None:
+                views[k][name] = vws[k]  # type: ignore[assignment]
     lidar_idx: list[list[int]] | None = None
     n_cand = 0
     noise: dict[int, dict[str, float]] = {}
