@@ -1274,6 +1274,8 @@ def _bias_step_sigmas(
        where there are some: :func:`_ins_level_wander`).
     Where the odometry is degenerate along the track it cannot judge
        the INS positions, which then keep the floor: they carry the along-track motion.
+    ``odo_step_r`` (3,): the odometry's step noise (rad, roll, pitch, heading), which a
+       wander measured over a shortened lag must clearly exceed to count.
     """
     a_floor, a_default, a_cap = sig.att_bias_step
     p_floor, p_default, p_cap = sig.pos_bias_step
