@@ -621,8 +621,12 @@ def test_fused_keeps_a_degenerate_odometry_heading(tmp_path: Path) -> None:
         inp.times, max_extrapolation_s=0.2
     )
     lag30 = {}
+    metrics = {}
     for name in ("ins", "odometry", "fused"):
-        T = run_strategy(name, inp).track.T
-        lag30[name] = float(np.median(_heading_errors_deg(T, gt, 30)))
+        res = run_strategy(name, inp)
+        lag30[name] = float(np.median(_heading_errors_deg(res.track.T, gt, 30)))
+        metrics = res.health.metrics
     assert _warned(run_strategy("odometry", inp), "degenerate"), "not the degenerate case"
+    assert metrics.get("fused_odometry_pairs", 0) >= 30, metrics  # lags 10 and 30: 50 + 30
+    assert "fused_scan_pairs" not in metrics, metrics
     assert lag30["fused"] <= 2.0 * min(lag30["ins"], lag30["odometry"]), lag30

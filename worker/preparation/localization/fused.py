@@ -650,6 +650,11 @@ def sparsity(pb: Problem) -> csc_matrix:
     return coo_matrix((np.ones(len(ii), dtype=int), (ii, jj)), shape=(r, m_cols)).tocsc()
 
 
+#: A run degenerate along the track keeps its odometry's lateral, vertical, roll and pitch
+#: steps at this fraction of their weight.
+DEGENERATE_DIVISOR = 3.0
+
+
 def _odometry_weights(
     inp: LocalizationInput,
     ins: InsFrames,
@@ -689,14 +694,14 @@ def _odometry_weights(
     w_r = np.tile(1.0 / sigma_r, (n1, 1))
     if degenerate_run:
         w_t[:, 0] = 1.0 / sig.odo_t_degenerate
-        w_t[:, 1:] /= 3.0
+        w_t[:, 1:] /= DEGENERATE_DIVISOR
         # the rotations at a third of their weight too, but not the heading where the
         # hat measured it over a lag: a run degenerate along the track (a straight sparse
         # corridor) can hold its heading well (within 0.06 deg over 60 frames; at a third
         # of its weight the fused heading followed an osdar23 INS's turn to 0.3 deg)
-        w_r[:, :2] /= 3.0
+        w_r[:, :2] /= DEGENERATE_DIVISOR
         if heading is None:
-            w_r[:, 2] /= 3.0
+            w_r[:, 2] /= DEGENERATE_DIVISOR
         health.warn(
             "fused: odometry degenerate along the track; along-track motion from INS and "
             "smoothness only"
@@ -1055,12 +1060,15 @@ def full_weight_steps(
     w_t: F64, w_r: F64, zupt: NDArray[np.bool_], odo_t: float, along: bool
 ) -> NDArray[np.bool_]:
     """(n-1,) the odometry steps at full weight: moving (not a zero-velocity step), lateral
-    (and vertical, weighted with it) at ``1 / odo_t``, along the track too if ``along``,
-    and a rotation weight the largest of the moving steps' (no skipped, slipping or
-    degenerate step). w_t, w_r : (n-1, 3) the steps' weights (:func:`_odometry_weights`)."""
+    (and vertical, weighted with it) at ``1 / odo_t`` (a run degenerate along the track,
+    ``along`` False: at the run's lateral weight, ``1 / (DEGENERATE_DIVISOR odo_t)``),
+    along the track too if ``along``, and a rotation weight the largest of the moving
+    steps' (no skipped, slipping or degenerate step). w_t, w_r : (n-1, 3) the steps'
+    weights (:func:`_odometry_weights`)."""
     moving = ~zupt if len(zupt) else np.ones(len(w_t), dtype=bool)
     w_r_full = np.max(w_r[moving], axis=0) if np.any(moving) else np.zeros(3)
-    full = moving & (w_t[:, 1] >= 0.99 / odo_t) & np.all(w_r >= 0.99 * w_r_full, axis=1)
+    w_lat = 1.0 / odo_t if along else 1.0 / (DEGENERATE_DIVISOR * odo_t)
+    full = moving & (w_t[:, 1] >= 0.99 * w_lat) & np.all(w_r >= 0.99 * w_r_full, axis=1)
     if along:
         full &= w_t[:, 0] >= 0.99 / odo_t
     return full
@@ -1118,7 +1126,7 @@ def _odometry_pairs(
     w = np.concatenate(wt)
     health.metrics["fused_odometry_pairs"] = float(len(k))
     delta, fine = 0.0, np.zeros(len(k), dtype=bool)
-    if sig.scan_pairs and inp.options.get("fused_scan_pairs", True):
+    if sig.scan_pairs and inp.options.get("fused_scan_pairs", True) and not degenerate:
         delta, fine = _fine_pairs(inp, k, j, T_k_j, w, health, sig)
     if delta:
         T_k_j = turn_lidar_poses(T_k_j, delta)
