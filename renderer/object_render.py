@@ -57,7 +57,7 @@ from numpy.typing import ArrayLike, NDArray
 from geometry.camera import TOL, CameraModel, gl_projection
 from geometry.transforms import invert_T
 from renderer.gl_context import create_context
-from renderer.lighting import Lighting
+from renderer.lighting import Lighting, srgb_to_linear
 from renderer.mesh import Material, ObjectMesh, ProxyMesh
 
 log = logging.getLogger(__name__)
@@ -74,7 +74,8 @@ SHADOW_MAX_LENGTH = 4.0  # ground shadow length at most this x the object's heig
 _BOUNDARY_SAMPLES = 96  # per edge, when mapping the ROI rectangle through the distortion
 _PROXY_ORIGIN_GRID = 10.0  # m
 TEXTURE_ANISOTROPY = 1.0  # llvmpipe: 8x costs 3.4x the render (0.42 vs 0.12 s); SSAA averages
-_GL_SRGB8_ALPHA8 = 0x8C43
+#: (256,) float32: linear light of each 8-bit sRGB value (IEC 61966-2-1)
+_SRGB_TO_LINEAR = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
 _REMAP_GRID = 256.0  # sub-pixel map positions are multiples of 1 / _REMAP_GRID
 
 
@@ -157,6 +158,67 @@ def shadow_source(src: str, gather: bool) -> str:
     return src.replace("#version 330\n", ext, 1)
 
 
+def _material_uniforms(sf: _Surface) -> dict[str, object]:
+    """A surface's material uniforms (textures on units 1-3; unit 0 is the shadow map)."""
+    m = sf.material
+    return {
+        "u_base_factor": tuple(float(x) for x in m.base_color),
+        "u_normal_scale": float(m.normal_scale),
+        "u_roughness": float(m.roughness),
+        "u_metallic": float(m.metallic),
+        "u_alpha_cutoff": -1.0 if m.alpha_cutoff is None else float(m.alpha_cutoff),
+        "u_triplanar": 0.0 if m.triplanar_m is None else float(m.triplanar_m),
+        "u_base_tex": 1,
+        "u_normal_tex": 2,
+        "u_mr_tex": 3,
+    }
+
+
+def _set_uniforms(pg: moderngl.Program, values: dict[str, object]) -> None:
+    """Set the uniforms the program kept (the GLSL compiler drops unused ones)."""
+    for k, v in values.items():
+        if k in pg:
+            pg[k].value = v
+
+
+def with_defines(src: str, defines: tuple[str, ...]) -> str:
+    """A shader's source with ``#define NAME`` lines after its ``#version`` (and
+    ``#extension``) lines."""
+    if not defines:
+        return src
+    lines = src.split("\n")
+    at = max(i for i, ln in enumerate(lines) if ln.startswith(("#version", "#extension"))) + 1
+    return "\n".join(lines[:at] + [f"#define {d}" for d in defines] + lines[at:])
+
+
+def material_defines(
+    m: Material, *, base: bool, normal: bool, mr: bool, shadow: bool
+) -> tuple[str, ...]:
+    """The object fragment shader's variant for a material (``base``, ``normal``, ``mr``:
+    which of its textures are on the GPU) and whether a shadow map is bound: only the
+    code the material uses is compiled. llvmpipe runs both sides of a branch for every
+    block of fragments, so a branch on a uniform costs what both sides cost: one shader
+    with every feature behind uniforms took 400 ms for a fallen tree filling 1400 x 640
+    pixels of rgb_highres_center, against 55 ms for the same pass with a trivial shader."""
+    tri = m.triplanar_m is not None and float(m.triplanar_m) > 0.0
+    d = []
+    if base:
+        d.append("HAS_BASE")
+    if tri:
+        d.append("TRIPLANAR")
+    if normal and not tri:
+        d.append("NORMAL_MAP")
+    if m.alpha_cutoff is not None and float(m.alpha_cutoff) >= 0.0:
+        d.append("ALPHA_CUTOFF")
+    if m.specular:
+        d.append("SPECULAR")
+        if mr:
+            d.append("HAS_MR")
+    if shadow:
+        d.append("SHADOW")
+    return tuple(d)
+
+
 _OBJ_VERTEX = """
 #version 330
 uniform mat4 u_mvp;
@@ -199,16 +261,12 @@ uniform float u_self_bias;
 uniform sampler2D u_base_tex;    // sRGB texture: sampled values are linear
 uniform sampler2D u_normal_tex;
 uniform sampler2D u_mr_tex;
-uniform int u_has_base;
-uniform int u_has_normal;
-uniform int u_has_mr;
 uniform vec4 u_base_factor;
 uniform float u_normal_scale;
 uniform float u_roughness;
 uniform float u_metallic;
-uniform float u_alpha_cutoff;    // < 0: opaque
-uniform float u_triplanar;       // > 0: period (m) of position-mapped textures
-uniform int u_specular;          // 0: plain Lambertian
+uniform float u_alpha_cutoff;    // with ALPHA_CUTOFF
+uniform float u_triplanar;       // with TRIPLANAR: period (m) of position-mapped textures
 in vec3 v_pos;
 in vec3 v_nrm;
 in vec3 v_col;
@@ -224,13 +282,14 @@ const float PI = 3.14159265;
 // A texture at this fragment: by UV, or by the object-space position seen along the
 // three axes, blended by the geometric normal (triplanar mapping).
 vec4 surface_tex(sampler2D t, vec3 ng) {
-    if (u_triplanar > 0.0) {
-        vec3 w = pow(abs(ng), vec3(4.0));
-        w /= (w.x + w.y + w.z + 1e-6);
-        vec3 p = v_pos / u_triplanar;
-        return w.x * texture(t, p.yz) + w.y * texture(t, p.xz) + w.z * texture(t, p.xy);
-    }
+#ifdef TRIPLANAR
+    vec3 w = pow(abs(ng), vec3(4.0));
+    w /= (w.x + w.y + w.z + 1e-6);
+    vec3 p = v_pos / u_triplanar;
+    return w.x * texture(t, p.yz) + w.y * texture(t, p.xz) + w.z * texture(t, p.xy);
+#else
     return texture(t, v_uv);
+#endif
 }
 void main() {
     float z = 1.0 / gl_FragCoord.w;
@@ -239,10 +298,15 @@ void main() {
     vec3 ng = normalize(cross(dFdx(v_pos), dFdy(v_pos)));
     if (dot(ng, n) < 0.0) ng = -ng;
     vec4 base = u_base_factor * vec4(v_col, 1.0);
-    if (u_has_base == 1) base *= surface_tex(u_base_tex, ng);
-    if (u_alpha_cutoff >= 0.0 && base.a < u_alpha_cutoff) discard;
+#ifdef HAS_BASE
+    base *= surface_tex(u_base_tex, ng);
+#endif
+#ifdef ALPHA_CUTOFF
+    if (base.a < u_alpha_cutoff) discard;
+#endif
     if (dot(ng, n) < 0.8) n = ng;          // hard edge: the smooth normal is meaningless
-    if (u_has_normal == 1 && u_triplanar <= 0.0) {  // tangent-space normal map
+#ifdef NORMAL_MAP
+    {  // tangent-space normal map
         vec3 t = v_tan.xyz - n * dot(n, v_tan.xyz);
         if (dot(t, t) > 1e-12) {
             t = normalize(t);
@@ -252,39 +316,44 @@ void main() {
             n = normalize(t * tn.x + b * tn.y + n * max(tn.z, 1e-3));
         }
     }
+#endif
     vec3 V = normalize(u_cam - v_pos);
     if (dot(ng, V) < 0.0) n = -n;          // back faces of open meshes
     float lam = max(dot(n, u_sun), 0.0);
+#ifdef SHADOW
     float lit = lam > 0.0 ? 1.0 - shadow_at(v_light, u_self_bias) : 0.0;
+#else
+    float lit = 1.0;                       // only ever multiplied by lam
+#endif
     vec3 amb = mix(u_ground, u_sky, 0.5 + 0.5 * dot(n, u_up));
     vec3 albedo = base.rgb;
     vec3 col;
-    if (u_specular == 0) {
-        col = albedo * (amb + u_sun_rgb * lam * lit);
-    } else {  // glTF metallic-roughness: GGX sun lobe, Schlick-Fresnel sky reflection
-        float rough = u_roughness, metal = u_metallic;
-        if (u_has_mr == 1) {
-            vec4 mr = surface_tex(u_mr_tex, ng);
-            rough *= mr.g;
-            metal *= mr.b;
-        }
-        vec3 f0 = mix(vec3(0.04), albedo, metal);
-        float nv = max(dot(n, V), 1e-4);
-        float a = max(rough * rough, 2e-3);
-        vec3 h = normalize(u_sun + V);
-        float nh = max(dot(n, h), 0.0), vh = max(dot(V, h), 0.0);
-        float d = nh * nh * (a * a - 1.0) + 1.0;
-        float D = a * a / (PI * d * d);
-        float k = 0.5 * a;
-        float G = (lam / (lam * (1.0 - k) + k)) * (nv / (nv * (1.0 - k) + k));
-        vec3 F = f0 + (1.0 - f0) * pow(1.0 - vh, 5.0);
-        vec3 brdf = D * G * F / max(4.0 * lam * nv, 1e-4);
-        vec3 fe = f0 + (max(vec3(1.0 - rough), f0) - f0) * pow(1.0 - nv, 5.0);
-        vec3 env = mix(u_ground, u_sky, 0.5 + 0.5 * dot(reflect(-V, n), u_up));
-        vec3 kd = (1.0 - metal) * (1.0 - fe);
-        col = kd * albedo * (amb + u_sun_rgb * lam * lit)
-            + PI * brdf * u_sun_rgb * lam * lit + fe * env;
-    }
+#ifndef SPECULAR
+    col = albedo * (amb + u_sun_rgb * lam * lit);
+#else  // glTF metallic-roughness: GGX sun lobe, Schlick-Fresnel sky reflection
+    float rough = u_roughness, metal = u_metallic;
+#ifdef HAS_MR
+    vec4 mr = surface_tex(u_mr_tex, ng);
+    rough *= mr.g;
+    metal *= mr.b;
+#endif
+    vec3 f0 = mix(vec3(0.04), albedo, metal);
+    float nv = max(dot(n, V), 1e-4);
+    float a = max(rough * rough, 2e-3);
+    vec3 h = normalize(u_sun + V);
+    float nh = max(dot(n, h), 0.0), vh = max(dot(V, h), 0.0);
+    float d = nh * nh * (a * a - 1.0) + 1.0;
+    float D = a * a / (PI * d * d);
+    float k = 0.5 * a;
+    float G = (lam / (lam * (1.0 - k) + k)) * (nv / (nv * (1.0 - k) + k));
+    vec3 F = f0 + (1.0 - f0) * pow(1.0 - vh, 5.0);
+    vec3 brdf = D * G * F / max(4.0 * lam * nv, 1e-4);
+    vec3 fe = f0 + (max(vec3(1.0 - rough), f0) - f0) * pow(1.0 - nv, 5.0);
+    vec3 env = mix(u_ground, u_sky, 0.5 + 0.5 * dot(reflect(-V, n), u_up));
+    vec3 kd = (1.0 - metal) * (1.0 - fe);
+    col = kd * albedo * (amb + u_sun_rgb * lam * lit)
+        + PI * brdf * u_sun_rgb * lam * lit + fe * env;
+#endif
     f_col = vec4(col, 1.0);
     f_aux = vec4(z, 0.0, 0.0, 1.0);
 }
@@ -423,12 +492,14 @@ class _Upload:
     key: tuple
     vbo: moderngl.Buffer
     ibo: moderngl.Buffer
-    vao: moderngl.VertexArray
+    vao: moderngl.VertexArray | None  # proxies: the proxy program's
     vao_sm: moderngl.VertexArray | None
     surfaces: list[_Surface] = field(default_factory=list)
+    #: objects: one vertex array per shader variant (:func:`material_defines`), made on use
+    vaos: dict[tuple[str, ...], moderngl.VertexArray] = field(default_factory=dict)
 
     def release(self) -> None:
-        for o in (self.vao, self.vao_sm, self.vbo, self.ibo):
+        for o in (self.vao, self.vao_sm, *self.vaos.values(), self.vbo, self.ibo):
             if o is not None:
                 o.release()
         for sf in self.surfaces:
@@ -590,9 +661,8 @@ class ObjectRenderer:
         gather = gather_shadow and (
             self.ctx.version_code >= 400 or "GL_ARB_texture_gather" in self.ctx.extensions
         )
-        self._prog_obj = self.ctx.program(
-            vertex_shader=_OBJ_VERTEX, fragment_shader=shadow_source(_OBJ_FRAGMENT, gather)
-        )
+        self._obj_fragment = shadow_source(_OBJ_FRAGMENT, gather)
+        self._obj_progs: dict[tuple[str, ...], moderngl.Program] = {}
         self._prog_proxy = self.ctx.program(
             vertex_shader=_PROXY_VERTEX, fragment_shader=shadow_source(_PROXY_FRAGMENT, gather)
         )
@@ -683,12 +753,6 @@ class ObjectRenderer:
         counts = np.bincount(face_mat, minlength=len(mats))
         vbo = self.ctx.buffer(np.ascontiguousarray(data, np.float32).tobytes())
         ibo = self.ctx.buffer(obj.faces[order].astype(np.uint32).tobytes())
-        vao = self.ctx.vertex_array(
-            self._prog_obj,
-            [(vbo, "3f 3f 3f 2f 4f", "in_pos", "in_nrm", "in_col", "in_uv", "in_tan")],
-            index_buffer=ibo,
-            index_element_size=4,
-        )
         vao_sm = self.ctx.vertex_array(
             self._prog_sm, [(vbo, "3f 48x", "in_pos")], index_buffer=ibo, index_element_size=4
         )
@@ -703,7 +767,7 @@ class ObjectRenderer:
                     self._texture(m.metallic_roughness_texture, srgb=False),
                 ))  # fmt: skip
             first += int(c)
-        up = _Upload(obj, key, vbo, ibo, vao, vao_sm, surfaces)
+        up = _Upload(obj, key, vbo, ibo, None, vao_sm, surfaces)
         self._obj_cache.append(up)
         if len(self._obj_cache) > 4:
             self._obj_cache.pop(0).release()
@@ -711,16 +775,22 @@ class ObjectRenderer:
 
     def _texture(self, img: NDArray[np.uint8] | None, *, srgb: bool) -> moderngl.Texture | None:
         """A mipmapped, repeating texture of an (h, w, 3|4) uint8 image (row 0 = v 0);
-        ``srgb``: stored as GL_SRGB8_ALPHA8, so the sampler returns linear values and
-        filtering and mipmaps average in linear light."""
+        ``srgb``: its colour channels are sRGB, converted to linear light here and stored
+        as half floats, so the sampler returns linear values and filtering and mipmaps
+        average in linear light. (A GL_SRGB8_ALPHA8 texture does the same on the GPU, but
+        llvmpipe decodes every texel of every fetch: a triplanar bark, three trilinear
+        fetches a fragment, cost 135 of a 235 ms object pass.)"""
         if img is None:
             return None
         rgba = img if img.shape[2] == 4 else np.dstack([img, np.full(img.shape[:2], 255, np.uint8)])
         h, w = rgba.shape[:2]
-        tex = self.ctx.texture(
-            (w, h), 4, np.ascontiguousarray(rgba).tobytes(),
-            internal_format=_GL_SRGB8_ALPHA8 if srgb else None,
-        )  # fmt: skip
+        if srgb:
+            lin = rgba.astype(np.float32) / 255.0
+            lin[..., :3] = _SRGB_TO_LINEAR[rgba[..., :3]]
+            tex = self.ctx.texture((w, h), 4, np.ascontiguousarray(lin, np.float16).tobytes(),
+                                   dtype="f2")  # fmt: skip
+        else:
+            tex = self.ctx.texture((w, h), 4, np.ascontiguousarray(rgba).tobytes())
         tex.repeat_x = tex.repeat_y = True
         tex.build_mipmaps()
         tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
@@ -757,8 +827,9 @@ class ObjectRenderer:
             for o in self._sm[1:][::-1]:
                 o.release()
             self._sm = None
-        for p in (self._prog_obj, self._prog_proxy, self._prog_sm):
+        for p in (*self._obj_progs.values(), self._prog_proxy, self._prog_sm):
             p.release()
+        self._obj_progs.clear()
 
     # ------------------------------------------------------------------ geometry helpers
     def _shadow_points_obj(self, obj: ObjectMesh, sun_obj: F64, up_obj: F64) -> F64:
@@ -986,45 +1057,63 @@ class ObjectRenderer:
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=vp)
 
         up_o = self._upload_object(obj)
-        pg = self._prog_obj
-        pg["u_mvp"].write((depth.P @ view.T_opt_obj).T.astype("f4").tobytes())
-        pg["u_light"].write(depth.light_obj.T.astype("f4").tobytes())
-        pg["u_sun"].value = tuple(view.sun_obj)
-        pg["u_up"].value = tuple(view.up_obj)
-        pg["u_cam"].value = tuple(view.T_obj_opt[:3, 3])
-        pg["u_sun_rgb"].value = (light.sun_intensity,) * 3
-        pg["u_sky"].value = tuple(light.sky_rgb)
-        pg["u_ground"].value = tuple(light.ambient_rgb)
-        pg["u_near"].value = depth.near
-        pg["u_log_far"].value = depth.log_far
-        pg["u_self_bias"].value = 2.0 * texel
-        self._set_shadow_uniforms(pg, depth.sm_tex, depth.sm_size)
-        for sf in up_o.surfaces:
-            self._set_material(pg, sf)
-            up_o.vao.render(moderngl.TRIANGLES, vertices=sf.count, first=sf.first)
-
-    def _set_material(self, pg: moderngl.Program, sf: _Surface) -> None:
-        """Material uniforms and textures (units 1-3; unit 0 is the shadow map)."""
-        m = sf.material
-        vals: dict[str, object] = {
-            "u_base_factor": tuple(float(x) for x in m.base_color),
-            "u_normal_scale": float(m.normal_scale),
-            "u_roughness": float(m.roughness),
-            "u_metallic": float(m.metallic),
-            "u_alpha_cutoff": -1.0 if m.alpha_cutoff is None else float(m.alpha_cutoff),
-            "u_triplanar": 0.0 if m.triplanar_m is None else float(m.triplanar_m),
-            "u_specular": 1 if m.specular else 0,
+        shadow = depth.sm_tex is not None and depth.sm_size > 0
+        common: dict[str, object] = {
+            "u_sun": tuple(view.sun_obj),
+            "u_up": tuple(view.up_obj),
+            "u_cam": tuple(view.T_obj_opt[:3, 3]),
+            "u_sun_rgb": (light.sun_intensity,) * 3,
+            "u_sky": tuple(light.sky_rgb),
+            "u_ground": tuple(light.ambient_rgb),
+            "u_near": depth.near,
+            "u_log_far": depth.log_far,
+            "u_self_bias": 2.0 * texel,
         }
-        for unit, (name, tex) in enumerate(
-            (("base", sf.base), ("normal", sf.normal), ("mr", sf.mr)), start=1
-        ):
-            vals[f"u_has_{name}"] = 0 if tex is None else 1
-            vals[f"u_{name}_tex"] = unit
-            if tex is not None:
-                tex.use(unit)
-        for k, v in vals.items():
-            if k in pg:  # the GLSL compiler drops unused uniforms
-                pg[k].value = v
+        mvp = (depth.P @ view.T_opt_obj).T.astype("f4").tobytes()
+        light_m = depth.light_obj.T.astype("f4").tobytes()
+        for sf in up_o.surfaces:
+            defines = material_defines(
+                sf.material,
+                base=sf.base is not None,
+                normal=sf.normal is not None,
+                mr=sf.mr is not None,
+                shadow=shadow,
+            )
+            pg, vao = self._object_variant(up_o, defines)
+            pg["u_mvp"].write(mvp)
+            _set_uniforms(pg, {**common, **_material_uniforms(sf)})
+            if "u_light" in pg:
+                pg["u_light"].write(light_m)
+            if "SHADOW" in defines:
+                self._set_shadow_uniforms(pg, depth.sm_tex, depth.sm_size)
+            for unit, tex in enumerate((sf.base, sf.normal, sf.mr), start=1):
+                if tex is not None:
+                    tex.use(unit)
+            vao.render(moderngl.TRIANGLES, vertices=sf.count, first=sf.first)
+
+    def _object_variant(
+        self, up: _Upload, defines: tuple[str, ...]
+    ) -> tuple[moderngl.Program, moderngl.VertexArray]:
+        """The object program compiled with ``defines`` (made once per renderer) and the
+        upload's vertex array for it."""
+        pg = self._obj_progs.get(defines)
+        if pg is None:
+            pg = self.ctx.program(
+                vertex_shader=_OBJ_VERTEX,
+                fragment_shader=with_defines(self._obj_fragment, defines),
+            )
+            self._obj_progs[defines] = pg
+        vao = up.vaos.get(defines)
+        if vao is None:
+            sizes = {"in_pos": 3, "in_nrm": 3, "in_col": 3, "in_uv": 2, "in_tan": 4}
+            fmt = " ".join(f"{k}f" if n in pg else f"{4 * k}x" for n, k in sizes.items())
+            names = list(sizes)
+            used = [n for n in names if n in pg]
+            vao = self.ctx.vertex_array(
+                pg, [(up.vbo, fmt, *used)], index_buffer=up.ibo, index_element_size=4
+            )
+            up.vaos[defines] = vao
+        return pg, vao
 
     def _draw_proxies(
         self,

@@ -11,7 +11,7 @@ from geometry.transforms import make_T
 from renderer.assets.user_mesh import load_user_mesh
 from renderer.lighting import Lighting, srgb_to_linear
 from renderer.mesh import Material, ObjectMesh
-from renderer.object_render import ObjectRenderer
+from renderer.object_render import ObjectRenderer, material_defines
 from tests.renderer.gltf_build import checkerboard, textured_box
 
 FLAT = Lighting(sun_intensity=0.0, ambient_rgb=(1.0, 1.0, 1.0), sky_rgb=(1.0, 1.0, 1.0))
@@ -136,3 +136,46 @@ def test_normal_map_tilts_the_shading_normal(cam, rr) -> None:
     flat = 0.5 * max(float((R @ np.array([1.0, 0, 0])) @ light.sun_dir_world), 0.0)
     got = float(np.median(r.color[inner][:, 0]))
     assert abs(got - want) < 0.02 and abs(want - flat) > 0.1, (got, want, flat)
+
+
+def test_shader_variant_compiles_only_what_the_material_uses() -> None:
+    """The object shader's defines follow the material and the bound textures."""
+    tex = checkerboard(n=8, px=1, lo=0, hi=255)
+    plain = Material(specular=False)
+    assert material_defines(plain, base=False, normal=False, mr=False, shadow=False) == ()
+    bark = Material(base_color_texture=tex, triplanar_m=0.4, specular=False)
+    assert material_defines(bark, base=True, normal=True, mr=False, shadow=True) == (
+        "HAS_BASE", "TRIPLANAR", "SHADOW",
+    )  # fmt: skip
+    pbr = Material(alpha_cutoff=0.5, specular=True)
+    assert material_defines(pbr, base=True, normal=True, mr=True, shadow=False) == (
+        "HAS_BASE", "NORMAL_MAP", "ALPHA_CUTOFF", "SPECULAR", "HAS_MR",
+    )  # fmt: skip
+    assert "HAS_MR" not in material_defines(plain, base=False, normal=False, mr=True, shadow=False)
+
+
+def test_two_materials_in_one_mesh_each_shade_with_their_own(cam, rr) -> None:
+    """A textured quad (a 1-texel checkerboard averaging to 0.5 in linear light) beside a
+    plain one of base colour (0.2, 0.4, 0.6): each keeps its own material although they
+    are drawn with two shader variants in one render."""
+    tex = checkerboard(n=256, px=1, lo=0, hi=255)
+    v = np.array([[0, -1, 0], [0, 0, 0], [0, 0, 2], [0, -1, 2],
+                  [0, 0.05, 0], [0, 1, 0], [0, 1, 2], [0, 0.05, 2]], float)  # fmt: skip
+    uv = np.tile(np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32), (2, 1))
+    faces = [[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]]
+    mats = [
+        Material(base_color_texture=np.dstack([tex, tex[..., :1]]), specular=False),
+        Material(base_color=(0.2, 0.4, 0.6, 1.0), specular=False),
+    ]
+    mesh = ObjectMesh(v, faces, np.ones((8, 3)), np.ones(8), uv=uv, materials=mats,
+                      face_material=np.array([0, 0, 1, 1]))  # fmt: skip
+    r = rr.render(mesh, yaw_T(180.0, (40.0, 0.0, 0.0)), np.eye(4), light=FLAT)
+    inner = r.alpha > 0.999
+    u0 = r.roi[0]
+    cols = np.arange(r.alpha.shape[1]) + u0
+    # object +y = world -y = image right of the centre column (camera looks along +x)
+    right = inner & (cols[None, :] > cam.K[0, 2] + 3)
+    left = inner & (cols[None, :] < cam.K[0, 2] - 3)
+    assert right.sum() > 50 and left.sum() > 50
+    np.testing.assert_allclose(np.median(r.color[right], axis=0), [0.2, 0.4, 0.6], atol=0.01)
+    np.testing.assert_allclose(np.median(r.color[left], axis=0), [0.5, 0.5, 0.5], atol=0.04)
