@@ -1237,30 +1237,37 @@ class ObjectRenderer:
         )
         if s > 1:  # box average of each pixel's s x s sub-pixels (exact for integer s)
             out = cv2.resize(out, (u1 - u0, v1 - v0), interpolation=cv2.INTER_AREA)
+        # in place with ``where`` rather than through boolean indexing (a gather and a
+        # scatter per array: 40 % of this function on a 1400 x 640 ROI)
         alpha = np.clip(out[..., 3], 0.0, 1.0)
         alpha[alpha < 1e-5] = 0.0
         has = alpha > 0
         color = np.zeros((*out.shape[:2], 3), np.float32)
-        color[has] = out[has, :3] / alpha[has, None]
+        np.divide(out[..., :3], alpha[..., None], out=color, where=has[..., None])
         depth = np.full(alpha.shape, np.nan, np.float32)
-        depth[has] = out[has, 4] / alpha[has]
+        np.divide(out[..., 4], alpha, out=depth, where=has)
         shadow = np.zeros(alpha.shape, np.float32)
         nv = out[..., 6] > 1e-5
-        shadow[nv] = np.clip(out[nv, 5] / out[nv, 6], 0.0, 1.0)
+        np.divide(out[..., 5], out[..., 6], out=shadow, where=nv)
+        np.clip(shadow, 0.0, 1.0, out=shadow)
         shadow[shadow < 1e-4] = 0.0
         unocc = float(out[..., 7].sum())
-        if not has.any() and not shadow.any():
+        any_obj = bool(has.any())
+        if not any_obj and not shadow.any():
             return self._empty(anchor_uv, distance, motion)
         vis_frac = float(alpha.sum() / unocc) if unocc > 1e-9 else 0.0
         bbox = (np.nan, np.nan, np.nan, np.nan)
-        sel = alpha > 0.5 if np.any(alpha > 0.5) else has
-        if sel.any():
-            vs, us = np.nonzero(sel)
+        sel = alpha > 0.5
+        if not sel.any():
+            sel = has
+        if any_obj:
+            vs = np.flatnonzero(sel.any(axis=1))
+            us = np.flatnonzero(sel.any(axis=0))
             bbox = (
-                float(u0 + us.min() - 0.5),
-                float(v0 + vs.min() - 0.5),
-                float(u0 + us.max() + 0.5),
-                float(v0 + vs.max() + 0.5),
+                float(u0 + us[0] - 0.5),
+                float(v0 + vs[0] - 0.5),
+                float(u0 + us[-1] + 0.5),
+                float(v0 + vs[-1] + 0.5),
             )
         return ObjectRender(
             roi=roi,
