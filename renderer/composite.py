@@ -279,10 +279,10 @@ def composite(
     color = render.color.astype(np.float32)
     if lab_match:
         color = _lab_match(frame, render, color, alpha)
-    layer = np.empty((*alpha.shape, 5), np.float32)  # premultiplied rgb, alpha, shadow
-    layer[..., :3] = color * alpha[..., None]
+    layer = np.empty((*alpha.shape, 4), np.float32)  # premultiplied rgb, alpha
+    np.multiply(color, alpha[..., None], out=layer[..., :3])
     layer[..., 3] = alpha
-    layer[..., 4] = render.shadow * float(shadow_strength)
+    shade = np.multiply(render.shadow, np.float32(shadow_strength), dtype=np.float32)
 
     sigma = FEATHER_SIGMA_PX
     if blur:
@@ -291,22 +291,21 @@ def composite(
         measured = frame_blur(frame, render, motion) if match_sharpness else None
         sigma = gaussian_sigma_px(render, measured)
         if motion != (0.0, 0.0):
-            layer[..., :4] = _motion(np.ascontiguousarray(layer[..., :4]), motion)
-    layer = np.dstack([gaussian_blur(np.ascontiguousarray(layer[..., :4]), sigma),
-                       gaussian_blur(np.ascontiguousarray(layer[..., 4]), sigma)])  # fmt: skip
+            layer = _motion(layer, motion)
+    layer = gaussian_blur(layer, sigma)
+    shade = gaussian_blur(shade, sigma)
     du, dv = float(pixel_offset[0]), float(pixel_offset[1])
     if du != 0.0 or dv != 0.0:
         M = np.array([[1.0, 0.0, du], [0.0, 1.0, dv]], np.float32)
         size = (layer.shape[1], layer.shape[0])
-        layer = np.dstack([
-            cv2.warpAffine(np.ascontiguousarray(layer[..., :4]), M, size, flags=cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_CONSTANT, borderValue=0),
-            cv2.warpAffine(np.ascontiguousarray(layer[..., 4]), M, size, flags=cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_CONSTANT, borderValue=0),
-        ])  # fmt: skip
+        layer, shade = (
+            cv2.warpAffine(x, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=0)
+            for x in (layer, shade)
+        )  # fmt: skip
 
     a = np.clip(layer[..., 3], 0.0, 1.0)
-    sh = np.clip(layer[..., 4], 0.0, 1.0)
+    sh = np.clip(shade, 0.0, 1.0)
     changed = (a > _CHANGE_EPS) | (sh > _CHANGE_EPS)
     out = frame.copy()
     if not changed.any():
