@@ -70,6 +70,7 @@ AUTO_SSAA_MAX = 4
 AUTO_SSAA_SAMPLES = 1.2e5  # llvmpipe cost grows with triangles x samples
 PROXY_DEPTH_BIAS = 2e-4  # relative depth a proxy must be in front to hide the object
 SHADOW_MAP_MIN, SHADOW_MAP_MAX = 64, 2048
+_SHADOW_MAPS_KEPT = 3
 SHADOW_MAX_LENGTH = 4.0  # ground shadow length at most this x the object's height (ROI)
 _BOUNDARY_SAMPLES = 96  # per edge, when mapping the ROI rectangle through the distortion
 _PROXY_ORIGIN_GRID = 10.0  # m
@@ -629,7 +630,7 @@ class _DepthPass:
     log_far: float
     light_obj: F64
     sm_tex: moderngl.Texture | None
-    sm_size: int
+    sm_size: tuple[int, int]  # (0, 0): none
 
 
 class ObjectRenderer:
@@ -668,8 +669,10 @@ class ObjectRenderer:
         )
         self._prog_sm = self.ctx.program(vertex_shader=_SM_VERTEX, fragment_shader=_SM_FRAGMENT)
         self._targets: _Targets | None = None
-        self._sm: tuple[int, moderngl.Texture, moderngl.Renderbuffer, moderngl.Framebuffer] | None
-        self._sm = None
+        #: shadow maps by size (most recent last): texture, depth buffer, framebuffer
+        self._sms: dict[
+            tuple[int, int], tuple[moderngl.Texture, moderngl.Renderbuffer, moderngl.Framebuffer]
+        ] = {}
         self._obj_cache: list[_Upload] = []
         self._proxy_cache: list[_Upload] = []
         # Pixel-centre extent of the pinhole render in normalised undistorted coordinates.
@@ -721,19 +724,24 @@ class ObjectRenderer:
         log.debug("%s: render targets %dx%d", self.camera.name, W, H)
         return self._targets
 
-    def _get_shadow_map(self, n: int) -> tuple[moderngl.Texture, moderngl.Framebuffer]:
-        if self._sm is None or self._sm[0] < n:
-            if self._sm is not None:
-                for o in self._sm[1:][::-1]:
-                    o.release()
-            size = int(2 ** np.ceil(np.log2(n)))
-            tex = self.ctx.texture((size, size), 1, dtype="f4")
+    def _get_shadow_map(self, nx: int, ny: int) -> tuple[moderngl.Texture, moderngl.Framebuffer]:
+        """A shadow map of at least ``nx`` x ``ny`` texels, each side a power of two (the
+        filter's texel corners are then exact); the last ``_SHADOW_MAPS_KEPT`` sizes kept."""
+        size = (int(2 ** np.ceil(np.log2(nx))), int(2 ** np.ceil(np.log2(ny))))
+        got = self._sms.pop(size, None)
+        if got is None:
+            tex = self.ctx.texture(size, 1, dtype="f4")
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
             tex.repeat_x = tex.repeat_y = False  # clamp to edge, as the filter clamps
-            rb = self.ctx.depth_renderbuffer((size, size))
+            rb = self.ctx.depth_renderbuffer(size)
             fbo = self.ctx.framebuffer(color_attachments=[tex], depth_attachment=rb)
-            self._sm = (size, tex, rb, fbo)
-        return self._sm[1], self._sm[3]
+            got = (tex, rb, fbo)
+        self._sms[size] = got
+        while len(self._sms) > _SHADOW_MAPS_KEPT:
+            old = self._sms.pop(next(iter(self._sms)))
+            for o in old[::-1]:
+                o.release()
+        return got[0], got[2]
 
     def _upload_object(self, obj: ObjectMesh) -> _Upload:
         key = (id(obj), len(obj.vertices), len(obj.faces))
@@ -823,10 +831,10 @@ class ObjectRenderer:
         if self._targets is not None:
             self._targets.release()
             self._targets = None
-        if self._sm is not None:
-            for o in self._sm[1:][::-1]:
+        for sm in self._sms.values():
+            for o in sm[::-1]:
                 o.release()
-            self._sm = None
+        self._sms.clear()
         for p in (*self._obj_progs.values(), self._prog_proxy, self._prog_sm):
             p.release()
         self._obj_progs.clear()
@@ -938,7 +946,7 @@ class ObjectRenderer:
         # Shadow map (object frame, orthographic along the sun).
         light_obj = np.eye(4)
         sm_tex = None
-        sm_size = 1
+        sm_size = (0, 0)
         if light.casts_shadows:
             light_obj, sm_tex, sm_size, _, texel = self._render_shadow_map(
                 obj, view.sun_obj, distance, obj_up=view.up_obj
@@ -1057,7 +1065,7 @@ class ObjectRenderer:
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=vp)
 
         up_o = self._upload_object(obj)
-        shadow = depth.sm_tex is not None and depth.sm_size > 0
+        shadow = depth.sm_tex is not None and min(depth.sm_size) > 0
         common: dict[str, object] = {
             "u_sun": tuple(view.sun_obj),
             "u_up": tuple(view.up_obj),
@@ -1138,28 +1146,30 @@ class ObjectRenderer:
         pp["u_near"].value = depth.near
         pp["u_log_far"].value = depth.log_far
         pp["u_bias"].value = PROXY_DEPTH_BIAS
-        self._set_shadow_uniforms(pp, depth.sm_tex, depth.sm_size if shadows else 0)
+        self._set_shadow_uniforms(pp, depth.sm_tex, depth.sm_size if shadows else (0, 0))
         fbo_p.use()
         fbo_p.viewport = vp
         up_p.vao.render(moderngl.TRIANGLES)
 
     def _set_shadow_uniforms(
-        self, prog: moderngl.Program, tex: moderngl.Texture | None, size: int
+        self, prog: moderngl.Program, tex: moderngl.Texture | None, size: tuple[int, int]
     ) -> None:
-        use = tex is not None and size > 0
+        use = tex is not None and min(size) > 0
         prog["u_use_shadow"].value = 1 if use else 0
-        prog["u_sm_size"].value = (float(max(size, 1)),) * 2
+        prog["u_sm_size"].value = (float(max(size[0], 1)), float(max(size[1], 1)))
         if tex is not None:
             tex.use(0)
         prog["u_shadow"].value = 0
 
     def _render_shadow_map(
         self, obj: ObjectMesh, sun_obj: F64, distance: float, obj_up: F64
-    ) -> tuple[F64, moderngl.Texture, int, float, float]:
+    ) -> tuple[F64, moderngl.Texture, tuple[int, int], float, float]:
         """Orthographic depth of the object along the sun, in the object frame.
 
-        Returns (M (4, 4) object -> (x_ndc, y_ndc, depth m), texture, size, depth range,
-        texel size m). Texels are about the camera's pixel footprint at the object.
+        Returns (M (4, 4) object -> (x_ndc, y_ndc, depth m), texture, its size (w, h),
+        depth range, texel size m: the larger side's). Texels are about the camera's pixel
+        footprint at the object along each side of the object's extent across the sun (a
+        square map of the longer side spent 4-6x the texels on a fallen tree).
         """
         w = -sun_obj  # light travel direction
         a = np.cross(w, obj_up if abs(w @ obj_up) < 0.99 else np.array([1.0, 0.0, 0.0]))
@@ -1170,18 +1180,18 @@ class ObjectRenderer:
         q = (obj.vertices - c) @ R.T
         half = np.abs(q[:, :2]).max(axis=0) * 1.02 + 1e-3
         footprint = max(distance, 0.5) / self.camera.fx
-        n = int(np.clip(np.ceil(2.0 * half.max() / footprint), SHADOW_MAP_MIN, SHADOW_MAP_MAX))
-        tex, fbo = self._get_shadow_map(n)
-        size = tex.size[0]
-        texel = 2.0 * float(half.max()) / size
+        n = np.clip(np.ceil(2.0 * half / footprint), SHADOW_MAP_MIN, SHADOW_MAP_MAX).astype(int)
+        tex, fbo = self._get_shadow_map(int(n[0]), int(n[1]))
+        size = (int(tex.size[0]), int(tex.size[1]))
+        texel = float(np.max(2.0 * half / np.asarray(size)))
         zr = float(np.abs(q[:, 2]).max() * 1.01 + 1e-3)
         M = np.eye(4)
-        M[0, :3] = a / half.max()
-        M[1, :3] = b / half.max()
+        M[0, :3] = a / half[0]
+        M[1, :3] = b / half[1]
         M[2, :3] = w
-        M[:3, 3] = -(np.stack([a / half.max(), b / half.max(), w]) @ c)
+        M[:3, 3] = -(np.stack([a / half[0], b / half[1], w]) @ c)
         fbo.use()
-        fbo.viewport = (0, 0, size, size)
+        fbo.viewport = (0, 0, size[0], size[1])
         fbo.clear(1e9, 0.0, 0.0, 0.0, depth=1.0)
         self._prog_sm["u_light"].write(M.T.astype("f4").tobytes())
         self._prog_sm["u_zr"].value = zr
