@@ -630,3 +630,35 @@ def test_fused_keeps_a_degenerate_odometry_heading(tmp_path: Path) -> None:
     assert metrics.get("fused_odometry_pairs", 0) >= 30, metrics  # lags 10 and 30: 50 + 30
     assert "fused_scan_pairs" not in metrics, metrics
     assert lag30["fused"] <= 2.0 * min(lag30["ins"], lag30["odometry"]), lag30
+
+
+@pytest.mark.parametrize(
+    ("scene", "density", "profile", "loosened"),
+    [("switch", 0.3, "hard", False), ("straight_sparse", 1.0, "osdar23", True)],
+)
+def test_a_short_lag_loosens_the_heading_wander_only_where_it_is_plain(
+    tmp_path: Path, scene: str, density: float, profile: str, loosened: bool
+) -> None:
+    """10 frames: the INS wander is measured over a lag shorter than the 1 s knots. On a
+    sparse switch with the hard INS (0.01 deg/s of true wander) the INS-odometry difference
+    (0.24 deg a knot, scaled) is what the sparse odometry's own heading steps add up to: the
+    heading keeps the default 0.1 deg. The osdar23 INS turning 0.2 deg/s against a dense
+    straight run's odometry is plain: the heading takes the measured wander (0.35)."""
+    from worker.preparation.localization.fused import Sigmas
+    from worker.synth.generator import SynthConfig, generate
+
+    folder = generate(
+        tmp_path / scene,
+        SynthConfig(scene=scene, frames=10, scale=0.05, lidar_density=density, seed=0,
+                    ins_profile=profile, cameras=()),
+    ).folder  # fmt: skip
+    m = run_strategy("fused", _input(folder)).health.metrics
+    default = float(np.degrees(Sigmas().att_bias_step[1]))
+    assert m["fused_ins_wander_lag_s"] < 1.0, m  # the shortened lag
+    assert m["fused_ins_wander_heading_deg"] > 1.5 * default, m  # measured large in both
+    if loosened:
+        assert m["fused_ins_bias_step_heading_deg"] == pytest.approx(
+            m["fused_ins_wander_heading_deg"]
+        ), m
+    else:
+        assert m["fused_ins_bias_step_heading_deg"] == pytest.approx(default), m

@@ -1346,8 +1346,9 @@ def _bias_step_sigmas(
         health.metrics["fused_ins_wander_lag_s"] = w.measured_lag_s
     if degenerate:
         out[3:] = p_floor
-    for name, v in zip(("roll", "pitch", "heading"), rot, strict=True):
+    for name, v, used in zip(("roll", "pitch", "heading"), rot, out[:3], strict=True):
         health.metrics[f"fused_ins_wander_{name}_deg"] = float(np.degrees(v))
+        health.metrics[f"fused_ins_bias_step_{name}_deg"] = float(np.degrees(used))
     for name, v in zip(("east", "north", "up"), w.position_m, strict=True):
         health.metrics[f"fused_ins_wander_{name}_m"] = float(v)
     return out
