@@ -57,7 +57,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from renderer.frame_blur import estimate_blur_sigma
-from renderer.lighting import linear_to_srgb, srgb_to_linear
+from renderer.lighting import SRGB8_TO_LINEAR, linear_to_srgb, srgb_to_linear
 from renderer.object_render import ObjectRender
 from renderer.sensor_noise import NoiseProfile, add_noise, estimate_noise, noise_weight
 
@@ -73,7 +73,6 @@ APERTURE_M = 0.004  # effective aperture diameter of the front cameras (assumed)
 FEATHER_SIGMA_PX = 0.5
 NOISE_WINDOW_PX = 48
 _CHANGE_EPS = 1.0 / 4096.0
-_SRGB_LUT = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
 
 
 def defocus_sigma_px(render: ObjectRender) -> float:
@@ -311,7 +310,7 @@ def composite(
     if not changed.any():
         return out
     real = frame[v0:v1, u0:u1]
-    bg = _SRGB_LUT[real[changed]]  # (k, 3) linear
+    bg = SRGB8_TO_LINEAR[real[changed]]  # (k, 3) linear
     res = layer[changed, :3] + (1.0 - a[changed, None]) * bg * (1.0 - sh[changed, None])
     enc8 = linear_to_srgb(res).astype(np.float64) * 255.0
     profile = frame_noise(frame, render) if match_noise else None

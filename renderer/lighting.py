@@ -98,6 +98,10 @@ def srgb_to_linear(c: ArrayLike) -> NDArray[np.float32]:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
+#: (256,) float32: linear light of each 8-bit sRGB value
+SRGB8_TO_LINEAR = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
+
+
 def linear_to_srgb(c: ArrayLike) -> NDArray[np.float32]:
     """Linear values -> sRGB-encoded, clipped to [0, 1], float32."""
     c = np.clip(np.asarray(c, dtype=np.float32), 0.0, 1.0)

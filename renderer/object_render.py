@@ -57,7 +57,7 @@ from numpy.typing import ArrayLike, NDArray
 from geometry.camera import TOL, CameraModel, gl_projection
 from geometry.transforms import invert_T
 from renderer.gl_context import create_context
-from renderer.lighting import Lighting, srgb_to_linear
+from renderer.lighting import SRGB8_TO_LINEAR, Lighting
 from renderer.mesh import Material, ObjectMesh, ProxyMesh
 
 log = logging.getLogger(__name__)
@@ -75,8 +75,6 @@ SHADOW_MAX_LENGTH = 4.0  # ground shadow length at most this x the object's heig
 _BOUNDARY_SAMPLES = 96  # per edge, when mapping the ROI rectangle through the distortion
 _PROXY_ORIGIN_GRID = 10.0  # m
 TEXTURE_ANISOTROPY = 1.0  # llvmpipe: 8x costs 3.4x the render (0.42 vs 0.12 s); SSAA averages
-#: (256,) float32: linear light of each 8-bit sRGB value (IEC 61966-2-1)
-_SRGB_TO_LINEAR = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
 _REMAP_GRID = 256.0  # sub-pixel map positions are multiples of 1 / _REMAP_GRID
 
 
@@ -794,7 +792,7 @@ class ObjectRenderer:
         h, w = rgba.shape[:2]
         if srgb:
             lin = rgba.astype(np.float32) / 255.0
-            lin[..., :3] = _SRGB_TO_LINEAR[rgba[..., :3]]
+            lin[..., :3] = SRGB8_TO_LINEAR[rgba[..., :3]]
             tex = self.ctx.texture((w, h), 4, np.ascontiguousarray(lin, np.float16).tobytes(),
                                    dtype="f2")  # fmt: skip
         else:
@@ -1115,8 +1113,7 @@ class ObjectRenderer:
         if vao is None:
             sizes = {"in_pos": 3, "in_nrm": 3, "in_col": 3, "in_uv": 2, "in_tan": 4}
             fmt = " ".join(f"{k}f" if n in pg else f"{4 * k}x" for n, k in sizes.items())
-            names = list(sizes)
-            used = [n for n in names if n in pg]
+            used = [n for n in sizes if n in pg]
             vao = self.ctx.vertex_array(
                 pg, [(up.vbo, fmt, *used)], index_buffer=up.ibo, index_element_size=4
             )
