@@ -25,7 +25,10 @@ Model, per frame k with stamp t_k (all errors are deterministic from ``model.see
    over the ``CORRIMU_WINDOW_S`` before the record's true time: pitch_rate / roll_rate /
    yaw_rate = body-frame rotation about INS X / Y / Z per sample (rad/sample),
    lateral / longitudinal / vertical_acc = kinematic acceleration (gravity removed, as in
-   NovAtel's corrected IMU) along INS X / Y / Z per sample (m/s/sample). No IMU noise;
+   NovAtel's corrected IMU) along INS X / Y / Z per sample (m/s/sample). The gyros have
+   a constant bias per axis and angle random walk (``gyro_bias_deg_h``,
+   ``gyro_noise_deg_rt_h``: a tactical-grade IMU in "paper", 2 deg/h and 0.15 deg/sqrt(h));
+   the accelerations have no noise;
 8. dropouts remove whole frames from all three tables.
 
 The world frame written to ``ground_truth/world.json`` is, by the project's definition, the
@@ -118,6 +121,8 @@ class InsErrorModel(BaseModel):
     - dropouts: each frame independently missing with ``dropout_fraction``, plus the
       explicit ``dropout_frames`` (frame counters);
     - ``position_stdev_m``: the baseline INSSTDEV position sigmas (E/lon, N/lat, U);
+    - the CORRIMU gyros: ``gyro_bias_deg_h`` the standard deviation of a constant bias per
+      axis (deg/h), ``gyro_noise_deg_rt_h`` angle random walk (deg/sqrt(h));
     - ``seed``: everything random comes from ``numpy.random.default_rng`` streams spawned
       from it, one per error source (changing one magnitude does not reshuffle the others).
     """
@@ -145,6 +150,8 @@ class InsErrorModel(BaseModel):
     dropout_fraction: float = Field(0.0, ge=0.0, lt=1.0)
     dropout_frames: list[int] = Field(default_factory=list)
     position_stdev_m: Vec3 = (0.02, 0.02, 0.04)
+    gyro_noise_deg_rt_h: float = Field(0.0, ge=0.0)
+    gyro_bias_deg_h: float = Field(0.0, ge=0.0)
     seed: int = 0
 
     @field_validator(
@@ -191,6 +198,8 @@ class InsErrorModel(BaseModel):
                 "attitude_noise_deg": 0.003,
                 "velocity_noise_mps": 0.005,
                 "position_stdev_m": (0.01, 0.01, 0.02),
+                "gyro_noise_deg_rt_h": 0.05,
+                "gyro_bias_deg_h": 0.5,
             },
             "paper": {
                 "lever_arm_m": (0.40, 0.30, -0.15),
@@ -204,6 +213,8 @@ class InsErrorModel(BaseModel):
                 "attitude_noise_deg": 0.01,
                 "velocity_noise_mps": 0.02,
                 "position_stdev_m": (0.02, 0.02, 0.04),
+                "gyro_noise_deg_rt_h": 0.15,
+                "gyro_bias_deg_h": 2.0,
             },
         }
         presets["hard"] = {
@@ -214,6 +225,8 @@ class InsErrorModel(BaseModel):
             "jump_decay_s": 5.0,
             "dropout_fraction": 0.05,
             "position_stdev_m": (0.03, 0.03, 0.06),
+            "gyro_noise_deg_rt_h": 0.3,
+            "gyro_bias_deg_h": 5.0,
         }
         presets["osdar23"] = {
             **presets["paper"],
@@ -319,11 +332,12 @@ class _Streams:
     jump: np.random.Generator
     misc: np.random.Generator  # stdev fluctuations, then dropouts
     drift: np.random.Generator
+    gyro: np.random.Generator
 
     @classmethod
     def from_seed(cls, seed: int) -> _Streams:
         # (spawned children are the same whatever their number: a new source goes last)
-        return cls(*[np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(10)])
+        return cls(*[np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(11)])
 
 
 def _record_times(
@@ -479,6 +493,22 @@ def _corrimu(
     )
 
 
+def _add_gyro_errors(corrimu: CorrImu, rng: np.random.Generator, model: InsErrorModel) -> None:
+    """The gyros' errors, in place: a constant bias per axis (``gyro_bias_deg_h``, drawn
+    once per sequence) and angle random walk (``gyro_noise_deg_rt_h``): over a window of
+    ``CORRIMU_WINDOW_S`` the angle's white noise is ARW * sqrt(window)."""
+    if model.gyro_noise_deg_rt_h <= 0.0 and model.gyro_bias_deg_h <= 0.0:
+        return
+    samples = CORRIMU_WINDOW_S * IMU_RATE_HZ
+    bias = np.radians(model.gyro_bias_deg_h / 3600.0) * rng.standard_normal(3)  # rad/s
+    arw = np.radians(model.gyro_noise_deg_rt_h / 60.0)  # rad/sqrt(s)
+    n = len(corrimu.timestamp)
+    angle = bias * CORRIMU_WINDOW_S + arw * np.sqrt(CORRIMU_WINDOW_S) * rng.standard_normal((n, 3))
+    corrimu.pitch_rate = corrimu.pitch_rate + angle[:, 0] / samples
+    corrimu.roll_rate = corrimu.roll_rate + angle[:, 1] / samples
+    corrimu.yaw_rate = corrimu.yaw_rate + angle[:, 2] / samples
+
+
 def _dropped(
     rng: np.random.Generator, model: InsErrorModel, fi: NDArray[np.int64]
 ) -> NDArray[np.bool_]:
@@ -558,6 +588,7 @@ def simulate_ins(
     )
     insstdev = _stdevs(rngs.misc, model, ts, fi, t_jumps)
     corrimu = _corrimu(ins_pose, t_true, ts, fi, T_world_ins[:, :3, :3], v_world)
+    _add_gyro_errors(corrimu, rngs.gyro, model)
     drop = _dropped(rngs.misc, model, fi)
     keep = ~drop
     inspva = inspva.take(keep)  # type: ignore[assignment]
