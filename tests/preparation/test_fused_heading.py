@@ -44,21 +44,29 @@ def _heading_error_deg(track: PoseTrack, folder: Path, lag: int) -> float:
     return float(np.degrees(np.sqrt(np.mean(e**2))))
 
 
-def _input(folder: Path):
+def _input(folder: Path, **options: object):
     entries = json.loads((folder / "ground_truth/centrelines.json").read_text())
     ego = next(Centreline.from_json(e) for e in entries if e.get("ego"))
-    return make_input(Sequence.open(folder), ego=ego, options={"odometry_map_lag_m": 0.0})
+    opts = {"odometry_map_lag_m": 0.0, **options}
+    return make_input(Sequence.open(folder), ego=ego, options=opts)
 
 
 @pytest.mark.slow
 def test_fused_keeps_the_good_ins_heading_when_the_odometry_misses_the_curve(
     slow_curve: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    err = {s: _heading_error_deg(run_strategy(s, _input(slow_curve)).track, slow_curve, 10)
+    # the gyros off: the hat is then what tells the odometry's heading from the INS's
+    err = {s: _heading_error_deg(run_strategy(s, _input(slow_curve, fused_gyro=False)).track,
+                                 slow_curve, 10)
            for s in ("ins", "odometry", "fused")}  # fmt: skip
+    with_gyro = _heading_error_deg(run_strategy("fused", _input(slow_curve)).track, slow_curve, 10)
     # without the hat (the heading judged against the odometry alone), for comparison
     monkeypatch.setattr(fused_module, "heading_errors", lambda *a, **k: None)
-    without = _heading_error_deg(run_strategy("fused", _input(slow_curve)).track, slow_curve, 10)
+    without = _heading_error_deg(
+        run_strategy("fused", _input(slow_curve, fused_gyro=False)).track, slow_curve, 10
+    )
     assert err["odometry"] > 10 * err["ins"], err  # the case: the odometry misses the turn
     assert err["fused"] < 1.5 * err["ins"], err
     assert without > 10 * err["fused"], (without, err)
+    # with the gyros the turn is theirs, hat or not
+    assert with_gyro < 1.5 * err["ins"], (with_gyro, err)

@@ -72,6 +72,7 @@ from worker.preparation.localization.common import (
 )
 from worker.preparation.localization.ground_pairs import LAGS as GROUND_LAGS
 from worker.preparation.localization.ground_pairs import ground_pairs
+from worker.preparation.localization.gyro import GAP_SIGMA_FACTOR, gyro_steps
 from worker.preparation.localization.hat import hat_variances, relative_difference
 from worker.preparation.localization.heading_hat import MIN_PAIRS as HEADING_MIN_PAIRS
 from worker.preparation.localization.heading_hat import HeadingErrors, heading_errors
@@ -236,6 +237,19 @@ class Sigmas:
     pos_bias: float = 2.0
     att_bias_step: tuple[float, float, float] = (0.01 * DEG, 0.1 * DEG, 1.0 * DEG)
     pos_bias_step: tuple[float, float, float] = (0.02, 0.1, 1.0)  # floor, default, cap
+    #: The gyros' frame-to-frame rotation (:mod:`.gyro`, ``novatel_oem7_corrimu``), sigma
+    #: per axis (rad): a tactical-grade IMU's angle noise over 0.1 s is under 1 mdeg; the
+    #: block's variance factor takes what a worse IMU or the interpolation to the lidar
+    #: times adds. The option ``fused_gyro: false`` turns it off.
+    gyro: bool = True
+    gyro_r: float = 0.001 * DEG
+    #: A rail vehicle's base moves along its own axis (:func:`_rail_motion`): frame k + 1's
+    #: lateral position in frame k is the chord of the turn between them plus the turn
+    #: times the base's distance ahead of the bogies' midpoint, within this sigma per step
+    #: (m): the body's sway on its suspension (a few mm at about 1 Hz, 2-3 mm a frame).
+    #: The option ``fused_rail_motion: false`` turns it off.
+    rail_motion: bool = True
+    rail_motion_lat: float = 0.003
 
 
 _ONES = np.ones(1)
@@ -276,6 +290,12 @@ class Problem:
     #: Odometry pairs: k, j (Q,), T_k_j (Q, 4, 4), w (Q, 2): 1/sigma of frame j's
     #: position in frame k along the track and laterally (:func:`_odometry_pairs`)
     odo_pairs: dict | None = None
+    #: Gyro steps: D (n-1, 3, 3) the base's rotation from frame k to k + 1, w (n-1, 3)
+    #: 1/sigma (0: no gyro there) (:func:`_gyro_steps`)
+    gyro: dict | None = None
+    #: Rail motion: w (n-1,) 1/sigma of each step's lateral motion, d the base's distance
+    #: ahead of the bogies' midpoint (m) (:func:`_rail_motion`)
+    nh: dict | None = None
     #: Variance factors of the measurement blocks (:data:`SCALED_BLOCKS`), per component:
     #: each block's sigmas are multiplied by these (:func:`variance_factors`).
     scale: dict[str, F64] = field(default_factory=dict)
@@ -495,6 +515,11 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
         out.append((along - pb.vel["d"]) * pb.vel["w"] / pb.s("ins_v"))
     if pb.odo_pairs is not None:
         out.append(_odometry_pair_residuals(pb, R, p).ravel())
+    if pb.gyro is not None:
+        E = np.swapaxes(pb.gyro["D"], 1, 2) @ Rt @ R[1:]
+        out.append((_log_rotation(E) * pb.gyro["w"] / pb.s("gyro")).ravel())
+    if pb.nh is not None:
+        out.append(_rail_motion_residuals(pb, R, p))
     # smoothness
     if pb.n >= 3:
         c = pb.diff2
@@ -562,6 +587,8 @@ def _cached_sparsity(pb: Problem) -> csc_matrix:
         pb.ground is None,
         pb.vel is None,
         None if pb.odo_pairs is None else len(pb.odo_pairs["k"]),
+        pb.gyro is None,
+        pb.nh is None,
     )
     if pb.structure is None or pb.structure[0] != key:
         pb.structure = (key, sparsity(pb))
@@ -622,6 +649,15 @@ def sparsity(pb: Problem) -> csc_matrix:
             for _ in range(3):
                 rows.append((r, frame_cols(int(k)) + frame_cols(int(j))))
                 r += 1
+    if pb.gyro is not None:
+        for k in range(n - 1):
+            for _ in range(3):
+                rows.append((r, frame_cols(k) + frame_cols(k + 1)))
+                r += 1
+    if pb.nh is not None:
+        for k in range(n - 1):
+            rows.append((r, frame_cols(k) + frame_cols(k + 1)))
+            r += 1
     if n >= 3:
         for _ in range(2):  # position and rotation smoothness
             for k in range(n - 2):
@@ -878,6 +914,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     )
     bias_sigma = np.array([sig.att_bias] * 3 + [sig.pos_bias] * 3)
     ground = _ground_constraints(inp, health, sig) if n >= 2 else None
+    gyro = _gyro_steps(inp, d_R, w_r, ground, health, sig) if n >= 2 else None
     covered = np.asarray(ins.covered, dtype=bool)
     # the INS attitude's own white noise (third differences), for the heading's two uses
     own_white = white_noise(
@@ -918,6 +955,8 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         ground=ground,
         vel=_velocity_steps(inp, ins, health, sig) if n >= 2 else None,
         odo_pairs=odo_pairs,
+        gyro=gyro,
+        nh=_rail_motion(inp, n, sig),
         zupt=zupt,
         diff2=difference_weights(np.asarray(inp.times, dtype=np.float64), 2),
         diff3=difference_weights(np.asarray(inp.times, dtype=np.float64), 3),
@@ -925,6 +964,59 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         ins_white=white,
         R_bias=_track_axes(R_ins_all),
     )
+
+
+def _gyro_steps(
+    inp: LocalizationInput,
+    d_R: F64,
+    w_r: F64,
+    ground: dict | None,
+    health: Health,
+    sig: Sigmas,
+) -> dict | None:
+    """The gyro block (:mod:`.gyro`): D (n-1, 3, 3) and w (n-1, 3), None without gyro
+    records or when switched off. The record clock's offset is set against the ground
+    pairs' roll and pitch (KISS-ICP's rotation steps ``d_R`` with their weights ``w_r``
+    (n-1, 3) without ground); a step across a missing record is down-weighted."""
+    if not (sig.gyro and inp.options.get("fused_gyro", True)):
+        return None
+    if ground is not None:
+        w_g = np.zeros((len(ground["k"]), 3))
+        w_g[:, :2] = ground["w"][:, 1:]
+        ref = (ground["k"], ground["j"], ground["T_k_j"][:, :3, :3], w_g)
+    else:
+        k = np.arange(len(d_R), dtype=np.int64)
+        ref = (k, k + 1, d_R, w_r)
+    try:
+        steps = gyro_steps(inp, ref, health)
+    except ValueError as exc:
+        health.warn(f"fused: gyro records unusable ({exc})")
+        return None
+    if steps is None or not np.any(steps.ok):
+        return None
+    sigma = np.hypot((sig.gyro_r * (1.0 + GAP_SIGMA_FACTOR * steps.gap))[:, None], steps.sd_interp)
+    return {"D": steps.D, "w": np.where(steps.ok[:, None], 1.0 / sigma, 0.0)}
+
+
+def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
+    """The rail-motion block: a rail vehicle's base point moves along the body's axis
+    except for the chord of a turn and, for a base at distance d ahead of the midpoint
+    of its two bogies, d times the turn (in a curve of radius r the body turns about the
+    curve's centre; a point d ahead of the bogies' midpoint moves at d / r to the body's
+    axis). d starts at 0 and is estimated from the solution (:func:`_estimate_base_offset`)."""
+    if n < 2 or not (sig.rail_motion and inp.options.get("fused_rail_motion", True)):
+        return None
+    return {"w": np.full(n - 1, 1.0 / sig.rail_motion_lat), "d": 0.0}
+
+
+def _rail_motion_residuals(pb: Problem, R: F64, p: F64) -> F64:
+    """(n-1,) normalised residuals of the rail motion: frame k + 1's lateral position in
+    frame k against the turn between them times (half the step + ``d``)."""
+    assert pb.nh is not None
+    B = np.einsum("nji,nj->ni", R[:-1], p[1:] - p[:-1])
+    theta = _log_rotation(np.swapaxes(R[:-1], 1, 2) @ R[1:])[:, 2]
+    pred = theta * (0.5 * B[:, 0] + pb.nh["d"])
+    return (B[:, 1] - pred) * pb.nh["w"] / pb.s("nh")
 
 
 def _track_axes(R_world_base: F64) -> F64:
@@ -1578,7 +1670,7 @@ def misalignment(x: F64, n: int) -> InsToLidar:
 #: count (residuals are stacked as (rows, components)), in :func:`residuals`' order.
 SCALED_BLOCKS = (
     "odo_t", "odo_r", "ins_p", "ins_r", "rail_lat", "rail_vert", "rail_r", "ground", "ins_v",
-    "odo_pair",
+    "odo_pair", "gyro", "nh",
 )  # fmt: skip
 #: Median of a chi-square variable with one degree of freedom: a robust variance factor
 #: of normalised residuals is ``median(r^2) / CHI2_1_MEDIAN``.
@@ -1611,6 +1703,10 @@ def _block_sizes(pb: Problem) -> list[tuple[str, int, int]]:
         sizes.append(("ins_v", len(pb.vel["k"]), 1))
     if pb.odo_pairs is not None:
         sizes.append(("odo_pair", len(pb.odo_pairs["k"]), 3))
+    if pb.gyro is not None:
+        sizes.append(("gyro", n - 1, 3))
+    if pb.nh is not None:
+        sizes.append(("nh", n - 1, 1))
     return sizes
 
 

@@ -1,0 +1,176 @@
+"""The gyros (CORRIMU) as frame-to-frame rotations: the chain of record increments
+reproduces a known rotation history at any time, a missing record is bridged, the record
+clock's offset is found, and on a synthetic sequence (gyro noise on) the steps at the lidar
+times match the true rotations to about a millidegree, where fused's own rotation steps
+without them are several times worse."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from geometry.poses import R_INS_BASE_NOMINAL, PoseTrack
+from tests.synth_fixtures import true_ego_input
+from worker.preparation.localization.base import Health
+from worker.preparation.localization.fused import FusedStrategy
+from worker.preparation.localization.gyro import (
+    gyro_chain,
+    gyro_steps,
+    rotations_at,
+    steps_at,
+    time_offset,
+)
+
+MDEG = np.pi / 180.0 / 1000.0
+WINDOW = 0.1
+
+
+def _attitude(t: np.ndarray) -> np.ndarray:
+    """(m, 3, 3) a base attitude history: a steadily tightening turn plus sway in roll,
+    pitch and yaw of tens of mdeg at about 1 Hz (as a coach on its suspension)."""
+    yaw = 0.004 * (t - 100.0) ** 2 + np.radians(0.01) * np.sin(3.1 * t)
+    pitch = np.radians(0.03) * np.sin(6.9 * t + 0.3)
+    roll = np.radians(0.04) * np.sin(5.7 * t + 1.1)
+    return Rotation.from_euler("xyz", np.stack([roll, pitch, yaw], 1)).as_matrix()
+
+
+def _records(t_rec: np.ndarray) -> np.ndarray:
+    """(m, 3) the INS-frame rate over the window before each record, as CORRIMU has it."""
+    R_now, R_prev = _attitude(t_rec), _attitude(t_rec - WINDOW)
+    dtheta_base = Rotation.from_matrix(np.swapaxes(R_prev, 1, 2) @ R_now).as_rotvec()
+    return dtheta_base @ R_INS_BASE_NOMINAL.T / WINDOW  # base -> INS axes, rad/s
+
+
+def _steps_error_mdeg(D: np.ndarray, t: np.ndarray) -> np.ndarray:
+    R = _attitude(t)
+    truth = np.swapaxes(R[:-1], 1, 2) @ R[1:]
+    e = Rotation.from_matrix(np.swapaxes(truth, 1, 2) @ D).as_rotvec()
+    return np.abs(e) / MDEG
+
+
+def test_the_chain_reproduces_the_rotation_between_any_two_times() -> None:
+    t_rec = 100.0 + WINDOW * np.arange(40)
+    chain = gyro_chain(t_rec, _records(t_rec))
+    t_lidar = t_rec[:-1] + 0.037  # lidar frames between the records
+    D, ok, gap, _ = steps_at(chain, t_lidar, 0.0)
+    assert ok.all() and np.all(gap == 0)
+    err = _steps_error_mdeg(D, t_lidar)
+    # true steps reach 30-40 mdeg (the turn, the sway): the cubic keeps them to 0.3 mdeg
+    # inside, and where it runs out of neighbours (the last step) to 1.5
+    R = _attitude(t_lidar)
+    true_steps = np.abs(Rotation.from_matrix(np.swapaxes(R[:-1], 1, 2) @ R[1:]).as_rotvec())
+    assert true_steps.max() / MDEG > 20.0
+    assert err[1:-1].max() < 0.3, err.max()
+    assert err.max() < 1.5, err.max()
+
+
+def test_a_missing_record_is_bridged_and_flagged() -> None:
+    t_rec = 100.0 + WINDOW * np.arange(30)
+    keep = np.ones(30, dtype=bool)
+    keep[12] = False
+    chain = gyro_chain(t_rec[keep], _records(t_rec[keep]), window_s=WINDOW)
+    D, ok, gap, _ = steps_at(chain, t_rec[:-1] + 0.01, 0.0)
+    assert ok.all()
+    flagged = np.flatnonzero(gap > 0)
+    assert gap[11] + gap[12] >= 0.99  # the steps touching the missing window say so
+    assert set(flagged) <= {10, 11, 12}
+    err = _steps_error_mdeg(D, t_rec[:-1] + 0.01)
+    assert np.delete(err, flagged, axis=0)[1:-1].max() < 0.3
+    assert err.max() < 3.0  # the bridged window at the neighbours' mean rate
+
+
+def test_the_chain_extends_one_window_beyond_its_ends() -> None:
+    t_rec = 100.0 + WINDOW * np.arange(20)
+    chain = gyro_chain(t_rec, _records(t_rec))
+    t = np.array([t_rec[-1] + 0.05, t_rec[-1] + 0.15])
+    R, ok, _ = rotations_at(chain, t)
+    assert ok.tolist() == [True, False]
+    # at the last record's rate for 50 ms: the sway's rate change, under 3 mdeg
+    A0, A = _attitude(np.array([t_rec[0] - WINDOW])), _attitude(t[:1])
+    truth = A0[0].T @ A[0]
+    err = np.abs(Rotation.from_matrix(truth.T @ R[0]).as_rotvec()) / MDEG
+    assert err.max() < 3.0, err
+
+
+def test_the_record_clock_offset_is_found() -> None:
+    true_offset = 0.043  # the records are stamped 43 ms after the state they hold
+    t_lidar = 100.0 + WINDOW * np.arange(30)
+    t_rec = t_lidar + 0.002
+    chain = gyro_chain(t_rec, _records(t_rec - true_offset))
+    # reference: roll and pitch of the true steps at the lidar times with 2 mdeg noise
+    rng = np.random.default_rng(3)
+    R = _attitude(t_lidar)
+    k = np.arange(29)
+    ref = np.swapaxes(R[k], 1, 2) @ R[k + 1]
+    ref = ref @ Rotation.from_rotvec(2 * MDEG * rng.standard_normal((29, 3))).as_matrix()
+    w = np.zeros((29, 3))
+    w[:, :2] = 1.0 / (2 * MDEG)
+    offset, se, used = time_offset(chain, t_lidar, k, k + 1, ref, w)
+    assert used == 29
+    assert abs(offset - true_offset) < 0.005, offset
+    assert 0.0 < se < 0.005
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from worker.synth.generator import SynthConfig, generate
+
+    cfg = SynthConfig(
+        scene="tight_curve", frames=30, scale=0.05, seed=11, lidar_density=0.3,
+        ins_profile="hard", cameras=(),
+    )  # fmt: skip
+    return generate(tmp_path_factory.mktemp("gyro") / "seq", cfg).folder
+
+
+def _truth_steps(folder: Path, times: np.ndarray) -> np.ndarray:
+    gt = PoseTrack.from_csv(folder / "ground_truth/poses_dense.csv").interpolate(times)
+    return np.swapaxes(gt[:-1, :3, :3], 1, 2) @ gt[1:, :3, :3]
+
+
+def test_gyro_steps_of_a_synthetic_sequence_match_the_truth(sequence: Path) -> None:
+    inp = true_ego_input(sequence)
+    n = len(inp.frames)
+    truth = _truth_steps(sequence, inp.times)
+    # the offset set against the true roll and pitch steps (hard INS: 50 ms latency)
+    w = np.zeros((n - 1, 3))
+    w[:, :2] = 1.0 / (2 * MDEG)
+    k = np.arange(n - 1)
+    health = Health()
+    steps = gyro_steps(inp, (k, k + 1, truth, w), health)
+    assert steps is not None
+    assert abs(steps.offset_s - 0.050) < 0.006, steps.offset_s
+    e = np.abs(Rotation.from_matrix(np.swapaxes(truth, 1, 2) @ steps.D).as_rotvec()) / MDEG
+    sd = steps.sd_interp / MDEG
+    # the interpolation's own sigma includes the gyro noise's third differences (~1 mdeg)
+    smooth = steps.ok & (steps.gap == 0) & np.all(sd < 3.0, axis=1)
+    assert smooth.sum() >= n // 2  # a dropout, the cant ramp's start and the end aside
+    # hard profile: 0.3 deg/sqrt(h) -> 1.6 mdeg a 0.1 s window, 5 deg/h bias -> 0.14 mdeg
+    rms = np.sqrt(np.mean(e[smooth] ** 2, axis=0))
+    assert np.all(rms < 2.5), rms
+    # where the rate bends (this curve's cant ramp starts with a step in the roll rate)
+    # the interpolation says so: the errors are within 3 sigma of gyro noise and bend
+    sigma = np.hypot(1.6, sd)
+    assert np.mean(e[steps.ok] <= 3 * sigma[steps.ok]) >= 0.95
+    assert steps.ok.sum() >= n - 2
+
+
+def test_fused_follows_the_gyros_frame_to_frame(sequence: Path) -> None:
+    inp = true_ego_input(sequence)
+    truth = _truth_steps(sequence, inp.times)
+
+    def lag1_mdeg(opts: dict) -> float:
+        inp.options.update(opts)
+        res = FusedStrategy().run(inp)
+        T = res.track.interpolate(inp.times)
+        D = np.swapaxes(T[:-1, :3, :3], 1, 2) @ T[1:, :3, :3]
+        e = Rotation.from_matrix(np.swapaxes(truth, 1, 2) @ D).as_rotvec() / MDEG
+        return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+
+    without = lag1_mdeg({"fused_gyro": False})
+    with_gyro = lag1_mdeg({"fused_gyro": True})
+    # the hard profile's gyro noise: 1.6 mdeg a step per axis, 2.8 over the three
+    assert with_gyro < 3.0, with_gyro
+    assert with_gyro < 0.8 * without, (with_gyro, without)
