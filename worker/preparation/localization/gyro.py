@@ -161,7 +161,30 @@ def rotations_at(chain: GyroChain, t: F64) -> tuple[F64, NDArray[np.bool_], F64]
     d3 = np.abs(np.diff(chain.rates, n=3, axis=0)) if m >= 4 else np.zeros((1, 3))
     # the third differences' own level (the gyros' noise, a smooth sway) is not a bend
     d3 = np.maximum(d3 - BEND_LEVELS * 1.4826 * np.median(d3, axis=0), 0.0)
-    for q in np.flatnonzero(ok):
+    i_all = np.clip(np.searchsorted(chain.t, t, side="right") - 1, 0, m - 2)
+    inner = ok & (t >= chain.t[0]) & (t <= chain.t[-1]) & (i_all >= 1) & (i_all + 2 <= m - 1)
+    if np.any(inner):  # four neighbours: all at once (the loop below does the rest)
+        q = np.flatnonzero(inner)
+        i = i_all[q]
+        idx = i[:, None] + np.arange(-1, 3)[None, :]  # (Q, 4)
+        rel = np.swapaxes(chain.R[i], 1, 2)[:, None] @ chain.R[idx]  # (Q, 4, 3, 3)
+        phi = Rotation.from_matrix(rel.reshape(-1, 3, 3)).as_rotvec().reshape(-1, 4, 3)
+        x = chain.t[idx]
+        basis = np.ones((len(q), 4))
+        for a in range(4):
+            for b in range(4):
+                if a != b:
+                    basis[:, a] *= (t[q] - x[:, b]) / (x[:, a] - x[:, b])
+        phi_t = np.einsum("qa,qac->qc", basis, phi)
+        out[q] = chain.R[i] @ Rotation.from_rotvec(phi_t).as_matrix()
+        span = chain.t[i + 1] - chain.t[i]
+        f = (t[q] - chain.t[i]) / span
+        lo = np.clip(i - 2, 0, len(d3) - 1)
+        win = np.clip(lo[:, None] + np.arange(4)[None, :], 0, len(d3) - 1)
+        win = np.where(win < np.minimum(i + 2, len(d3))[:, None], win, lo[:, None])
+        bend = np.max(d3[win], axis=1)
+        sd[q] = BEND_SD_FACTOR * (f * (1.0 - f) * span)[:, None] * bend
+    for q in np.flatnonzero(ok & ~inner):
         if t[q] < chain.t[0] or t[q] > chain.t[-1]:  # beyond the ends: at the end's rate
             end = 0 if t[q] < chain.t[0] else -1
             step = chain.rates[end] * (t[q] - chain.t[end])
