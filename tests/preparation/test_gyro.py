@@ -108,10 +108,16 @@ def test_the_record_clock_offset_is_found() -> None:
     ref = ref @ Rotation.from_rotvec(2 * MDEG * rng.standard_normal((29, 3))).as_matrix()
     w = np.zeros((29, 3))
     w[:, :2] = 1.0 / (2 * MDEG)
-    offset, se, used = time_offset(chain, t_lidar, k, k + 1, ref, w)
-    assert used == 29
-    assert abs(offset - true_offset) < 0.005, offset
-    assert 0.0 < se < 0.005
+    fit = time_offset(chain, t_lidar, k, k + 1, ref, w)
+    assert fit.pairs == 29
+    assert abs(fit.offset_s - true_offset) < 0.005, fit
+    assert 0.0 < fit.offset_se_s < 0.005
+    assert abs(fit.gain - 1.0) < 0.05, fit
+    # a CORRIMU from a 200 Hz IMU read as 100 Hz: every rotation halved, the gain says 2
+    half = gyro_chain(t_rec, 0.5 * _records(t_rec - true_offset))
+    fit2 = time_offset(half, t_lidar, k, k + 1, ref, w)
+    assert abs(fit2.gain - 2.0) < 0.1, fit2
+    assert abs(fit2.offset_s - true_offset) < 0.005, fit2
 
 
 @pytest.fixture(scope="module")
@@ -155,6 +161,24 @@ def test_gyro_steps_of_a_synthetic_sequence_match_the_truth(sequence: Path) -> N
     sigma = np.hypot(1.6, sd)
     assert np.mean(e[steps.ok] <= 3 * sigma[steps.ok]) >= 0.95
     assert steps.ok.sum() >= n - 2
+
+
+def test_a_wrong_imu_rate_is_found_and_said(sequence: Path) -> None:
+    inp = true_ego_input(sequence)
+    n = len(inp.frames)
+    truth = _truth_steps(sequence, inp.times)
+    w = np.zeros((n - 1, 3))
+    w[:, :2] = 1.0 / (2 * MDEG)
+    k = np.arange(n - 1)
+    inp.options["imu_rate_hz"] = 200.0  # the synthetic IMU's is 100
+    health = Health()
+    steps = gyro_steps(inp, (k, k + 1, truth, w), health)
+    assert steps is not None
+    assert abs(steps.imu_rate_hz - 100.0) < 5.0, steps.imu_rate_hz
+    assert any("IMU rate" in m for m in health.warnings), health.warnings
+    e = Rotation.from_matrix(np.swapaxes(truth, 1, 2) @ steps.D).as_rotvec() / MDEG
+    good = steps.ok & (steps.gap == 0) & np.all(steps.sd_interp / MDEG < 3.0, axis=1)
+    assert np.all(np.sqrt(np.mean(e[good] ** 2, axis=0)) < 2.5)
 
 
 def test_fused_follows_the_gyros_frame_to_frame(sequence: Path) -> None:

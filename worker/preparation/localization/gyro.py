@@ -13,8 +13,8 @@ That is what a placed object's frame-to-frame stability needs: 1 mdeg of heading
 Three things are not in the files and are handled here:
 
 - the IMU rate (rad/sample -> rad/s): the option ``imu_rate_hz`` (default
-  :data:`DEFAULT_IMU_RATE_HZ`), checked against the INS attitude's own changes
-  (:func:`gain_check`);
+  :data:`DEFAULT_IMU_RATE_HZ`), checked against the reference below (a gain fitted with
+  the offset; taken, with a warning, when it is plainly not 1);
 - the time of the increments against the lidar's clock: the INS stamps its records late by
   its latency (tens of ms); the offset is found by matching the gyros' roll and pitch
   steps to the ground's (:func:`time_offset`; the ground pairs of
@@ -63,6 +63,12 @@ BEND_SD_FACTOR = 0.5
 #: A third difference of the rates counts as a bend beyond this many times its robust
 #: level (1.4826 x its median over the sequence).
 BEND_LEVELS = 3.0
+#: Bounds of the gyros' fitted gain (an IMU rate off by more than 4x is not a rate error).
+GAIN_BOUNDS = (0.25, 4.0)
+#: The gain is taken (the rates rescaled, with a warning) when it differs from 1 by more
+#: than this share and by three standard errors: a CORRIMU from an IMU of another rate than
+#: ``imu_rate_hz`` (100, 125, 200 Hz are common) scales every rotation by their ratio.
+GAIN_TOLERANCE = 0.05
 #: A step across a missing record counts this much less (sigma factor per missing window).
 GAP_SIGMA_FACTOR = 3.0
 
@@ -238,6 +244,20 @@ def steps_at(
     return D, ok, gap, np.hypot(sd[:-1], sd[1:])
 
 
+@dataclass(frozen=True)
+class ClockFit:
+    """The gyros against a reference (:func:`time_offset`): the record clock's offset (s)
+    and its standard error (inf: no minimum inside the grid), the gain on the gyros'
+    rotations that fits best there (1: the IMU rate is right) and its standard error, and
+    the reference pairs used."""
+
+    offset_s: float
+    offset_se_s: float
+    gain: float
+    gain_se: float
+    pairs: int
+
+
 def time_offset(
     chain: GyroChain,
     t_lidar: F64,
@@ -245,31 +265,39 @@ def time_offset(
     j: NDArray[np.int64],
     R_ref: F64,
     w_ref: F64,
-) -> tuple[float, float, int]:
+) -> ClockFit:
     """The record clock's offset against the lidar's that best matches the gyros'
     rotation between frames ``k`` and ``j`` (Q,) to reference rotations ``R_ref``
     (Q, 3, 3) (R_k^T R_j) weighted per base axis by ``w_ref`` (Q, 3) (1/sigma; 0: that
-    axis does not count). Misfit: the weighted squared differences, each term capped at 3
-    sigma (a failed registration does not decide). Returns the offset (s), its standard
-    error from the misfit's curvature (s; inf when it has no minimum inside the grid) and
-    the pairs used."""
+    axis does not count), with the gyros' rotations scaled by the gain that fits best at
+    each offset (small angles: rotation vectors compared). Misfit: the weighted squared
+    differences, each term capped at 3 sigma (a failed registration does not decide)."""
     use = np.any(w_ref > 0, axis=1)
     n_use = int(np.sum(use))
+    none = ClockFit(0.0, np.inf, 1.0, np.inf, n_use)
     if n_use < MIN_OFFSET_PAIRS:
-        return 0.0, np.inf, n_use
-    k, j, R_ref, w_ref = k[use], j[use], R_ref[use], w_ref[use]
+        return none
+    k, j, w_ref = k[use], j[use], w_ref[use]
+    rho = Rotation.from_matrix(R_ref[use]).as_rotvec()
     cost = np.full(len(OFFSET_GRID_S), np.inf)
+    gains = np.ones(len(OFFSET_GRID_S))
+    gain_se = np.full(len(OFFSET_GRID_S), np.inf)
     for q, c in enumerate(OFFSET_GRID_S):
         R, inside, _ = rotations_at(chain, np.asarray(t_lidar, dtype=np.float64) + float(c))
         sel = inside[k] & inside[j]
         if np.sum(sel) < max(MIN_OFFSET_PAIRS, 0.8 * n_use):
             continue
-        D = np.swapaxes(R[k[sel]], 1, 2) @ R[j[sel]]
-        e = Rotation.from_matrix(np.swapaxes(R_ref[sel], 1, 2) @ D).as_rotvec()
+        phi = Rotation.from_matrix(np.swapaxes(R[k[sel]], 1, 2) @ R[j[sel]]).as_rotvec()
+        w2 = w_ref[sel] ** 2
+        den = float(np.sum(w2 * phi**2))
+        if den > 0:
+            gains[q] = float(np.clip(np.sum(w2 * rho[sel] * phi) / den, *GAIN_BOUNDS))
+            gain_se[q] = 1.0 / np.sqrt(den)
+        e = rho[sel] - gains[q] * phi
         z2 = np.minimum((e * w_ref[sel]) ** 2, 9.0)
         cost[q] = float(np.sum(z2)) / float(np.sum(sel))
     if not np.any(np.isfinite(cost)):
-        return 0.0, np.inf, n_use
+        return none
     q = int(np.argmin(cost))
     best, se = float(OFFSET_GRID_S[q]), np.inf
     if 0 < q < len(cost) - 1 and np.all(np.isfinite(cost[q - 1 : q + 2])):
@@ -280,7 +308,7 @@ def time_offset(
             best += 0.5 * h * (a - c) / (a - 2 * b + c)
             # the misfit is a mean of chi-square terms: curvature x pairs / 2 = information
             se = float(np.sqrt(2.0 / (curv * n_use)))
-    return best, se, n_use
+    return ClockFit(best, se, float(gains[q]), float(gain_se[q]), n_use)
 
 
 def read_rates(inp: LocalizationInput, imu_rate_hz: float) -> tuple[F64, F64] | None:
@@ -322,15 +350,25 @@ def gyro_steps(
     t_lidar = np.asarray(inp.times, dtype=np.float64)
     fixed = inp.options.get("gyro_offset_s")
     if fixed is not None:
-        offset, se, used = float(fixed), 0.0, 0
+        offset, se = float(fixed), 0.0
     else:
-        offset, se, used = time_offset(chain, t_lidar, *ref)
+        fit = time_offset(chain, t_lidar, *ref)
+        offset, se = fit.offset_s, fit.offset_se_s
         if not np.isfinite(se):
             health.warn(
-                f"fused: gyro clock offset not measurable ({used} usable reference pairs); "
-                "taken as 0 s"
+                f"fused: gyro clock offset not measurable ({fit.pairs} usable reference "
+                "pairs); taken as 0 s"
             )
             offset = 0.0
+        elif abs(fit.gain - 1.0) > max(GAIN_TOLERANCE, 3.0 * fit.gain_se):
+            rate_hz *= fit.gain
+            health.warn(
+                f"fused: the gyros' rotations fit the ground's at {fit.gain:.2f}x: the "
+                f"CORRIMU's IMU rate looks like {rate_hz:.0f} Hz; rescaled (set the "
+                "option imu_rate_hz if it is known)"
+            )
+            chain = gyro_chain(t_rec, rates * fit.gain)
+        health.metrics["fused_gyro_gain"] = fit.gain
     D, ok, gap, sd = steps_at(chain, t_lidar, offset)
     health.metrics["fused_gyro_offset_ms"] = 1000.0 * offset
     health.metrics["fused_gyro_offset_se_ms"] = 1000.0 * se if np.isfinite(se) else -1.0
