@@ -17,6 +17,7 @@ from tests.synth_fixtures import true_ego_input
 from worker.preparation.localization.base import Health
 from worker.preparation.localization.fused import FusedStrategy
 from worker.preparation.localization.gyro import (
+    fit_alignment,
     gyro_chain,
     gyro_steps,
     rotations_at,
@@ -118,6 +119,41 @@ def test_the_record_clock_offset_is_found() -> None:
     fit2 = time_offset(half, t_lidar, k, k + 1, ref, w)
     assert abs(fit2.gain - 2.0) < 0.1, fit2
     assert abs(fit2.offset_s - true_offset) < 0.005, fit2
+
+
+def test_a_tilted_ins_is_found_in_a_curve_and_not_on_the_straight() -> None:
+    """A boresight tilt of 0.3 / -0.2 deg puts a tight curve's yaw (0.2 rad/s) into roll
+    and pitch; the ground's roll and pitch over 10 frames find it."""
+    tilt = np.radians([0.3, -0.2, 0.0])
+    R_tilt = Rotation.from_rotvec(tilt).as_matrix()
+    t_lidar = 100.0 + WINDOW * np.arange(60)
+    t_rec = t_lidar + 0.01
+    rng = np.random.default_rng(5)
+    k = np.arange(50)
+    j = k + 10
+
+    def attitude(t: np.ndarray, yaw_rate: float) -> np.ndarray:
+        """A coach's sway (as :func:`_attitude`) on a curve of constant yaw rate."""
+        yaw = yaw_rate * (t - 100.0) + np.radians(0.01) * np.sin(3.1 * t)
+        pitch = np.radians(0.03) * np.sin(6.9 * t + 0.3)
+        roll = np.radians(0.04) * np.sin(5.7 * t + 1.1)
+        return Rotation.from_euler("xyz", np.stack([roll, pitch, yaw], 1)).as_matrix()
+
+    for yaw_rate, found in ((0.2, True), (0.0, False)):
+        R_now, R_prev = attitude(t_rec, yaw_rate), attitude(t_rec - WINDOW, yaw_rate)
+        d_true = Rotation.from_matrix(np.swapaxes(R_prev, 1, 2) @ R_now).as_rotvec()
+        d_nominal = d_true @ R_tilt  # (R_tilt^T d)^T: what the tilted INS reports, base axes
+        chain = gyro_chain(t_rec, d_nominal @ R_INS_BASE_NOMINAL.T / WINDOW)
+        A = attitude(t_lidar, yaw_rate)
+        ref = np.swapaxes(A[k], 1, 2) @ A[j]
+        ref = ref @ Rotation.from_rotvec(2 * MDEG * rng.standard_normal((50, 3))).as_matrix()
+        w = np.zeros((50, 3))
+        w[:, :2] = 1.0 / (2 * MDEG)
+        a, se = fit_alignment(chain, t_lidar, 0.0, k, j, ref, w)
+        significant = np.sum((a[:2] / se[:2]) ** 2) > 9.0
+        assert significant == found, (yaw_rate, a, se)
+        if found:
+            assert np.all(np.abs(a[:2] - tilt[:2]) < np.radians(0.03)), np.degrees(a)
 
 
 @pytest.fixture(scope="module")

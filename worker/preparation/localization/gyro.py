@@ -63,6 +63,14 @@ BEND_SD_FACTOR = 0.5
 #: A third difference of the rates counts as a bend beyond this many times its robust
 #: level (1.4826 x its median over the sequence).
 BEND_LEVELS = 3.0
+#: Fewest frames between a reference pair's two frames for the alignment fit
+#: (:func:`fit_alignment`).
+ALIGN_MIN_LAG = 5
+#: The alignment is taken when its tilt is this many standard errors from zero (the root
+#: of the sum of both components' squared ratios) ...
+ALIGN_SIGNIFICANCE = 3.0
+#: ... and smaller than this (rad): a boresight, not a gyro mounted another way.
+ALIGN_MAX_TILT = np.radians(2.0)
 #: Bounds of the gyros' fitted gain (an IMU rate off by more than 4x is not a rate error).
 GAIN_BOUNDS = (0.25, 4.0)
 #: The gain is taken (the rates rescaled, with a warning) when it differs from 1 by more
@@ -113,16 +121,24 @@ class GyroChain:
     window: float
 
 
-def gyro_chain(times: F64, rates_ins: F64, window_s: float | None = None) -> GyroChain:
+def gyro_chain(
+    times: F64,
+    rates_ins: F64,
+    window_s: float | None = None,
+    R_align: F64 | None = None,
+) -> GyroChain:
     """Sum the records' increments into the body's rotation over time.
 
     times : (m,) record stamps (s), increasing; rates_ins : (m, 3) angular rate (rad/s)
     about INS X, Y, Z averaged over the ``window_s`` before each stamp (default the
-    median record interval). Returns the chain at ``times[0] - window_s`` and at every
-    record (m + 1 points), in base axes.
+    median record interval); R_align : (3, 3) the INS axes' small rotation against the
+    base beyond the nominal mounting (:func:`fit_alignment`; None: none). Returns the
+    chain at ``times[0] - window_s`` and at every record (m + 1 points), in base axes.
     """
     times = np.asarray(times, dtype=np.float64)
     w_base = np.asarray(rates_ins, dtype=np.float64) @ R_INS_BASE_NOMINAL  # R^T.T: ins->base
+    if R_align is not None:
+        w_base = w_base @ np.asarray(R_align, dtype=np.float64).T
     m = len(times)
     if m < 2:
         raise ValueError("the gyro chain needs two records or more")
@@ -311,6 +327,56 @@ def time_offset(
     return ClockFit(best, se, float(gains[q]), float(gain_se[q]), n_use)
 
 
+def fit_alignment(
+    chain: GyroChain,
+    t_lidar: F64,
+    offset_s: float,
+    k: NDArray[np.int64],
+    j: NDArray[np.int64],
+    R_ref: F64,
+    w_ref: F64,
+) -> tuple[F64, F64] | None:
+    """The small rotation ``a`` (3,) (rad, base axes) that turns the gyros' rotation
+    vectors onto the reference's (``rho ~ phi + a x phi``, weighted by ``w_ref``, pairs at
+    least :data:`ALIGN_MIN_LAG` frames apart), and its standard errors (3,); None when
+    too few pairs.
+
+    The INS is mounted with a boresight of tenths of a degree that the nominal mounting
+    leaves out: in a tight curve (200 mdeg of yaw a frame) 0.3 deg of tilt puts 1 mdeg a
+    frame of the yaw into roll or pitch, which the chain adds up (tight_curve, 100 frames:
+    -0.94 mdeg of pitch a frame against the truth). The ground pairs' roll and pitch see
+    the tilt as that leak, growing with the yaw; pairs over several frames, because a
+    lag-1 ground pair carries a bias of its own of the same size."""
+    use = np.any(w_ref > 0, axis=1) & ((j - k) >= ALIGN_MIN_LAG)
+    if int(np.sum(use)) < MIN_OFFSET_PAIRS:
+        return None
+    k, j, w = k[use], j[use], w_ref[use]
+    R, inside, _ = rotations_at(chain, np.asarray(t_lidar, dtype=np.float64) + offset_s)
+    sel = inside[k] & inside[j]
+    if int(np.sum(sel)) < MIN_OFFSET_PAIRS:
+        return None
+    phi = Rotation.from_matrix(np.swapaxes(R[k[sel]], 1, 2) @ R[j[sel]]).as_rotvec()
+    rho = Rotation.from_matrix(R_ref[use][sel]).as_rotvec()
+    w, lag = w[sel], (j - k)[sel]
+    # the tilt only (a_z stays 0): (a x phi)_x = a_y phi_z, (a x phi)_y = -a_x phi_z on
+    # the rows the reference weighs (roll, pitch)
+    A = np.zeros((len(phi), 2, 2))
+    A[:, 0, 1], A[:, 1, 0] = phi[:, 2], -phi[:, 2]
+    Aw = (A * w[:, :2, None]).reshape(-1, 2)
+    bw = ((rho - phi)[:, :2] * w[:, :2]).reshape(-1)
+    N = Aw.T @ Aw
+    if np.linalg.cond(N) > 1e12:
+        return None
+    cov = np.linalg.inv(N)
+    x = cov @ (Aw.T @ bw)
+    # pairs a lag apart share most of their frames (one independent pair per lag), and the
+    # residuals' own scatter scales the formal errors
+    dof = max(len(bw) - 2, 1)
+    chi2 = float(np.sum((bw - Aw @ x) ** 2)) / dof
+    se = np.sqrt(np.diag(cov) * max(chi2, 1.0) * float(np.mean(lag)))
+    return np.array([x[0], x[1], 0.0]), np.array([se[0], se[1], np.inf])
+
+
 def read_rates(inp: LocalizationInput, imu_rate_hz: float) -> tuple[F64, F64] | None:
     """(m,) record stamps and (m, 3) rates (rad/s about INS X, Y, Z) of the sequence's
     ``novatel_oem7_corrimu``, None when it has none (or fewer than two records)."""
@@ -367,8 +433,17 @@ def gyro_steps(
                 f"CORRIMU's IMU rate looks like {rate_hz:.0f} Hz; rescaled (set the "
                 "option imu_rate_hz if it is known)"
             )
-            chain = gyro_chain(t_rec, rates * fit.gain)
+            rates = rates * fit.gain
+            chain = gyro_chain(t_rec, rates)
         health.metrics["fused_gyro_gain"] = fit.gain
+        got_a = fit_alignment(chain, t_lidar, offset, *ref)
+        if got_a is not None:
+            a, a_se = got_a
+            z2 = float(np.sum((a[:2] / a_se[:2]) ** 2))
+            tilt = float(np.linalg.norm(a[:2]))
+            if z2 > ALIGN_SIGNIFICANCE**2 and tilt < ALIGN_MAX_TILT:
+                chain = gyro_chain(t_rec, rates, R_align=Rotation.from_rotvec(a).as_matrix())
+                health.metrics["fused_gyro_tilt_deg"] = float(np.degrees(tilt))
     D, ok, gap, sd = steps_at(chain, t_lidar, offset)
     health.metrics["fused_gyro_offset_ms"] = 1000.0 * offset
     health.metrics["fused_gyro_offset_se_ms"] = 1000.0 * se if np.isfinite(se) else -1.0
