@@ -172,16 +172,21 @@ def _truth_steps(folder: Path, times: np.ndarray) -> np.ndarray:
     return np.swapaxes(gt[:-1, :3, :3], 1, 2) @ gt[1:, :3, :3]
 
 
+def _true_reference(n: int, truth: np.ndarray) -> tuple:
+    """The true roll and pitch steps as the clock's reference (2 mdeg weights)."""
+    w = np.zeros((n - 1, 3))
+    w[:, :2] = 1.0 / (2 * MDEG)
+    k = np.arange(n - 1)
+    return k, k + 1, truth, w
+
+
 def test_gyro_steps_of_a_synthetic_sequence_match_the_truth(sequence: Path) -> None:
     inp = true_ego_input(sequence)
     n = len(inp.frames)
     truth = _truth_steps(sequence, inp.times)
     # the offset set against the true roll and pitch steps (hard INS: 50 ms latency)
-    w = np.zeros((n - 1, 3))
-    w[:, :2] = 1.0 / (2 * MDEG)
-    k = np.arange(n - 1)
     health = Health()
-    steps = gyro_steps(inp, (k, k + 1, truth, w), health)
+    steps = gyro_steps(inp, _true_reference(n, truth), health)
     assert steps is not None
     assert abs(steps.offset_s - 0.050) < 0.006, steps.offset_s
     e = np.abs(Rotation.from_matrix(np.swapaxes(truth, 1, 2) @ steps.D).as_rotvec()) / MDEG
@@ -203,12 +208,9 @@ def test_a_wrong_imu_rate_is_found_and_said(sequence: Path) -> None:
     inp = true_ego_input(sequence)
     n = len(inp.frames)
     truth = _truth_steps(sequence, inp.times)
-    w = np.zeros((n - 1, 3))
-    w[:, :2] = 1.0 / (2 * MDEG)
-    k = np.arange(n - 1)
     inp.options["imu_rate_hz"] = 200.0  # the synthetic IMU's is 100
     health = Health()
-    steps = gyro_steps(inp, (k, k + 1, truth, w), health)
+    steps = gyro_steps(inp, _true_reference(n, truth), health)
     assert steps is not None
     assert abs(steps.imu_rate_hz - 100.0) < 5.0, steps.imu_rate_hz
     assert any("IMU rate" in m for m in health.warnings), health.warnings
