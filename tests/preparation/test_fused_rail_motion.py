@@ -65,3 +65,15 @@ def test_rail_motion_holds_the_lateral_steps_of_a_short_sparse_run(short_switch:
     rms, rms_without = np.sqrt(np.mean(with_nh**2)), np.sqrt(np.mean(without**2))
     assert rms < 1.3 * 1.84, (with_nh, without)
     assert rms < rms_without, (with_nh, without)
+
+
+@pytest.mark.xfail(
+    reason="measured miss: the first step 3.26 mm off (bound 3.0: the sway's 2.6 mm a "
+    "frame and a little); the sway is not followed at lag 1",
+    strict=False,
+)
+def test_rail_motion_keeps_every_lateral_step_within_the_sway(short_switch: Path) -> None:
+    inp = true_ego_input(short_switch)
+    inp.options["fused_rail_motion"] = True
+    err = _lateral_step_errors_mm(FusedStrategy().run(inp).track, short_switch, inp.times)
+    assert np.max(np.abs(err)) < 3.0, err
