@@ -6,6 +6,7 @@ without them are several times worse."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -213,6 +214,16 @@ def test_gyro_steps_of_a_synthetic_sequence_match_the_truth(sequence: Path) -> N
     sigma = np.hypot(1.6, sd)
     assert np.mean(e[steps.ok] <= 3 * sigma[steps.ok]) >= 0.95
     assert steps.ok.sum() >= n - 2
+
+
+def test_a_sequence_without_gyro_records_runs_without_them(sequence: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "seq"
+    shutil.copytree(sequence, folder, ignore=shutil.ignore_patterns("novatel_oem7_corrimu"))
+    inp = true_ego_input(folder)
+    res = FusedStrategy().run(inp)
+    assert res.health.metrics["fused_gyro_steps"] == 0.0
+    assert "fused_variance_factor_gyro" not in res.health.metrics
+    assert not res.health.degraded, res.health.degraded
 
 
 def test_a_wrong_imu_rate_is_found_and_said(sequence: Path) -> None:

@@ -10,7 +10,7 @@ a tactical-grade IMU, against the 4-10 mdeg of KISS-ICP's steps or the INS attit
 That is what a placed object's frame-to-frame stability needs: 1 mdeg of heading is
 0.13 px on rgb_highres_center.
 
-Three things are not in the files and are handled here:
+Four things are not in the files and are handled here:
 
 - the IMU rate (rad/sample -> rad/s): the option ``imu_rate_hz`` (default
   :data:`DEFAULT_IMU_RATE_HZ`), checked against the reference below (a gain fitted with
@@ -22,12 +22,13 @@ Three things are not in the files and are handled here:
   ground: theirs lag the truth and pulled the offset 20-70 ms early): the body's pitch and
   roll sway change by several mdeg a frame, so 50 ms of offset is several mdeg of error;
 - records that are missing (dropouts): the gap's rotation is the neighbouring rates'
-  mean over it, and the steps across it are down-weighted.
-
-Geometry: rotation vectors in the INS frame (X right, Y forward, Z up) map to the base
-frame (x forward, y left, z up) through the nominal mounting
-(:data:`geometry.poses.R_INS_BASE_NOMINAL`); the boresight (tenths of a degree) only tilts
-a step's axis by that much, far below the gyros' noise.
+  mean over it, and the steps across it are down-weighted;
+- the INS's boresight: rotation vectors in the INS frame (X right, Y forward, Z up) map to
+  the base frame (x forward, y left, z up) through the nominal mounting
+  (:data:`geometry.poses.R_INS_BASE_NOMINAL`), and a boresight of tenths of a degree tilts
+  each step's axis by that much: negligible for the sway, but in a tight curve it puts
+  1 mdeg a frame of the yaw into roll and pitch; the tilt is fitted where a curve shows
+  it (:func:`fit_alignment`).
 """
 
 from __future__ import annotations
@@ -431,21 +432,21 @@ def gyro_steps(
         elif abs(fit.gain - 1.0) > max(GAIN_TOLERANCE, 3.0 * fit.gain_se):
             rate_hz *= fit.gain
             health.warn(
-                f"fused: the gyros' rotations fit the ground's at {fit.gain:.2f}x: the "
+                f"fused: the gyros' rotations fit the reference's at {fit.gain:.2f}x: the "
                 f"CORRIMU's IMU rate looks like {rate_hz:.0f} Hz; rescaled (set the "
                 "option imu_rate_hz if it is known)"
             )
             rates = rates * fit.gain
             chain = gyro_chain(t_rec, rates)
         health.metrics["fused_gyro_gain"] = fit.gain
-        got_a = fit_alignment(chain, t_lidar, offset, *ref)
-        if got_a is not None:
-            a, a_se = got_a
-            z2 = float(np.sum((a[:2] / a_se[:2]) ** 2))
-            tilt = float(np.linalg.norm(a[:2]))
-            if z2 > ALIGN_SIGNIFICANCE**2 and tilt < ALIGN_MAX_TILT:
-                chain = gyro_chain(t_rec, rates, R_align=Rotation.from_rotvec(a).as_matrix())
-                health.metrics["fused_gyro_tilt_deg"] = float(np.degrees(tilt))
+    got_a = fit_alignment(chain, t_lidar, offset, *ref)
+    if got_a is not None:
+        a, a_se = got_a
+        z2 = float(np.sum((a[:2] / a_se[:2]) ** 2))
+        tilt = float(np.linalg.norm(a[:2]))
+        if z2 > ALIGN_SIGNIFICANCE**2 and tilt < ALIGN_MAX_TILT:
+            chain = gyro_chain(t_rec, rates, R_align=Rotation.from_rotvec(a).as_matrix())
+            health.metrics["fused_gyro_tilt_deg"] = float(np.degrees(tilt))
     D, ok, gap, sd = steps_at(chain, t_lidar, offset)
     health.metrics["fused_gyro_offset_ms"] = 1000.0 * offset
     health.metrics["fused_gyro_offset_se_ms"] = 1000.0 * se if np.isfinite(se) else -1.0
