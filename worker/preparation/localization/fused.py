@@ -1003,7 +1003,9 @@ def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
     except for the chord of a turn and, for a base at distance d ahead of the midpoint
     of its two bogies, d times the turn (in a curve of radius r the body turns about the
     curve's centre; a point d ahead of the bogies' midpoint moves at d / r to the body's
-    axis). d starts at 0 and is estimated from the solution (:func:`_estimate_base_offset`)."""
+    axis). d is 0 here (a base over the bogies' midpoint): estimating it, which needs a
+    sequence whose curvature varies, is not done (the bogie cells of the robustness matrix
+    ran within their goals with d = 0)."""
     if n < 2 or not (sig.rail_motion and inp.options.get("fused_rail_motion", True)):
         return None
     return {"w": np.full(n - 1, 1.0 / sig.rail_motion_lat), "d": 0.0}
