@@ -28,7 +28,8 @@ Model, per frame k with stamp t_k (all errors are deterministic from ``model.see
    NovAtel's corrected IMU) along INS X / Y / Z per sample (m/s/sample). The gyros have
    a constant bias per axis and angle random walk (``gyro_bias_deg_h``,
    ``gyro_noise_deg_rt_h``: a tactical-grade IMU in "paper", 2 deg/h and 0.15 deg/sqrt(h));
-   the accelerations have no noise;
+   the accelerometers a constant bias per axis and velocity random walk
+   (``accel_bias_mg``, ``accel_noise_mps_rt_h``: 1 mg and 0.05 m/s/sqrt(h) in "paper");
 8. dropouts remove whole frames from all three tables.
 
 The world frame written to ``ground_truth/world.json`` is, by the project's definition, the
@@ -123,6 +124,9 @@ class InsErrorModel(BaseModel):
     - ``position_stdev_m``: the baseline INSSTDEV position sigmas (E/lon, N/lat, U);
     - the CORRIMU gyros: ``gyro_bias_deg_h`` the standard deviation of a constant bias per
       axis (deg/h), ``gyro_noise_deg_rt_h`` angle random walk (deg/sqrt(h));
+    - the CORRIMU accelerometers: ``accel_bias_mg`` the standard deviation of a constant
+      bias per axis (mg, 1 mg = 9.81 mm/s^2), ``accel_noise_mps_rt_h`` velocity random walk
+      (m/s/sqrt(h));
     - ``seed``: everything random comes from ``numpy.random.default_rng`` streams spawned
       from it, one per error source (changing one magnitude does not reshuffle the others).
     """
@@ -152,6 +156,8 @@ class InsErrorModel(BaseModel):
     position_stdev_m: Vec3 = (0.02, 0.02, 0.04)
     gyro_noise_deg_rt_h: float = Field(0.0, ge=0.0)
     gyro_bias_deg_h: float = Field(0.0, ge=0.0)
+    accel_noise_mps_rt_h: float = Field(0.0, ge=0.0)
+    accel_bias_mg: float = Field(0.0, ge=0.0)
     seed: int = 0
 
     @field_validator(
@@ -200,6 +206,8 @@ class InsErrorModel(BaseModel):
                 "position_stdev_m": (0.01, 0.01, 0.02),
                 "gyro_noise_deg_rt_h": 0.05,
                 "gyro_bias_deg_h": 0.5,
+                "accel_noise_mps_rt_h": 0.02,
+                "accel_bias_mg": 0.1,
             },
             "paper": {
                 "lever_arm_m": (0.40, 0.30, -0.15),
@@ -215,6 +223,8 @@ class InsErrorModel(BaseModel):
                 "position_stdev_m": (0.02, 0.02, 0.04),
                 "gyro_noise_deg_rt_h": 0.15,
                 "gyro_bias_deg_h": 2.0,
+                "accel_noise_mps_rt_h": 0.05,
+                "accel_bias_mg": 1.0,
             },
         }
         presets["hard"] = {
@@ -227,6 +237,8 @@ class InsErrorModel(BaseModel):
             "position_stdev_m": (0.03, 0.03, 0.06),
             "gyro_noise_deg_rt_h": 0.3,
             "gyro_bias_deg_h": 5.0,
+            "accel_noise_mps_rt_h": 0.15,
+            "accel_bias_mg": 3.0,
         }
         presets["osdar23"] = {
             **presets["paper"],
@@ -333,11 +345,12 @@ class _Streams:
     misc: np.random.Generator  # stdev fluctuations, then dropouts
     drift: np.random.Generator
     gyro: np.random.Generator
+    accel: np.random.Generator
 
     @classmethod
     def from_seed(cls, seed: int) -> _Streams:
         # (spawned children are the same whatever their number: a new source goes last)
-        return cls(*[np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(11)])
+        return cls(*[np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(12)])
 
 
 def _record_times(
@@ -509,6 +522,23 @@ def _add_gyro_errors(corrimu: CorrImu, rng: np.random.Generator, model: InsError
     corrimu.yaw_rate = corrimu.yaw_rate + angle[:, 2] / samples
 
 
+def _add_accel_errors(corrimu: CorrImu, rng: np.random.Generator, model: InsErrorModel) -> None:
+    """The accelerometers' errors, in place: a constant bias per axis (``accel_bias_mg``,
+    drawn once per sequence) and velocity random walk (``accel_noise_mps_rt_h``): over a
+    window of ``CORRIMU_WINDOW_S`` the velocity's white noise is VRW * sqrt(window)."""
+    if model.accel_noise_mps_rt_h <= 0.0 and model.accel_bias_mg <= 0.0:
+        return
+    bias = 9.80665e-3 * model.accel_bias_mg * rng.standard_normal(3)  # m/s^2
+    vrw = model.accel_noise_mps_rt_h / 60.0  # m/s/sqrt(s)
+    n = len(corrimu.timestamp)
+    dv = bias * CORRIMU_WINDOW_S + vrw * np.sqrt(CORRIMU_WINDOW_S) * rng.standard_normal((n, 3))
+    # m/s per sample: the window's velocity change spread over its samples
+    samples = CORRIMU_WINDOW_S * IMU_RATE_HZ
+    corrimu.lateral_acc = corrimu.lateral_acc + dv[:, 0] / samples
+    corrimu.longitudinal_acc = corrimu.longitudinal_acc + dv[:, 1] / samples
+    corrimu.vertical_acc = corrimu.vertical_acc + dv[:, 2] / samples
+
+
 def _dropped(
     rng: np.random.Generator, model: InsErrorModel, fi: NDArray[np.int64]
 ) -> NDArray[np.bool_]:
@@ -589,6 +619,7 @@ def simulate_ins(
     insstdev = _stdevs(rngs.misc, model, ts, fi, t_jumps)
     corrimu = _corrimu(ins_pose, t_true, ts, fi, T_world_ins[:, :3, :3], v_world)
     _add_gyro_errors(corrimu, rngs.gyro, model)
+    _add_accel_errors(corrimu, rngs.accel, model)
     drop = _dropped(rngs.misc, model, fi)
     keep = ~drop
     inspva = inspva.take(keep)  # type: ignore[assignment]

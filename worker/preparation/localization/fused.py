@@ -62,6 +62,7 @@ from scipy.spatial.transform import Rotation
 
 from geometry.pose_uncertainty import PoseInformation
 from geometry.poses import InsToLidar, PoseTrack
+from worker.preparation.localization.accelerometer import accel_block
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
 from worker.preparation.localization.common import (
     InsFrames,
@@ -250,6 +251,13 @@ class Sigmas:
     #: The option ``fused_rail_motion: false`` turns it off.
     rail_motion: bool = True
     rail_motion_lat: float = 0.003
+    #: The INS's accelerometers (:mod:`.accelerometer`): the third differences of the
+    #: positions they see, sigma (along, lateral, vertical, m) per stencil: a
+    #: tactical-grade accelerometer's velocity noise over 0.1 s is a few tenths of a
+    #: millimetre a second, a hundredth of these; they take the lever arm's share and
+    #: the interpolation to the lidar times. The option ``fused_accel: false`` turns it off.
+    accel: bool = True
+    accel_jerk: tuple[float, float, float] = (0.0005, 0.0003, 0.0003)
 
 
 _ONES = np.ones(1)
@@ -296,6 +304,9 @@ class Problem:
     #: Rail motion: w (n-1,) 1/sigma of each step's lateral motion, d the base's distance
     #: ahead of the bogies' midpoint (m) (:func:`_rail_motion`)
     nh: dict | None = None
+    #: Accelerometer jerks: meas (n-3, 3) the third differences of the positions (base
+    #: axes of each stencil's second frame), w (n-3, 3) 1/sigma (:mod:`.accelerometer`)
+    accel: dict | None = None
     #: Variance factors of the measurement blocks (:data:`SCALED_BLOCKS`), per component:
     #: each block's sigmas are multiplied by these (:func:`variance_factors`).
     scale: dict[str, F64] = field(default_factory=dict)
@@ -520,6 +531,8 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
         out.append((_log_rotation(E) * pb.gyro["w"] / pb.s("gyro")).ravel())
     if pb.nh is not None:
         out.append(_rail_motion_residuals(pb, R, p))
+    if pb.accel is not None:
+        out.append(_accel_residuals(pb, R, p).ravel())
     # smoothness
     if pb.n >= 3:
         c = pb.diff2
@@ -588,7 +601,8 @@ def _cached_sparsity(pb: Problem) -> csc_matrix:
         pb.vel is None,
         None if pb.odo_pairs is None else len(pb.odo_pairs["k"]),
         pb.gyro is None,
-        pb.nh is None,
+        None if pb.nh is None else len(pb.nh["k"]),
+        pb.accel is None,
     )
     if pb.structure is None or pb.structure[0] != key:
         pb.structure = (key, sparsity(pb))
@@ -655,9 +669,15 @@ def sparsity(pb: Problem) -> csc_matrix:
                 rows.append((r, frame_cols(k) + frame_cols(k + 1)))
                 r += 1
     if pb.nh is not None:
-        for k in range(n - 1):
-            rows.append((r, frame_cols(k) + frame_cols(k + 1)))
+        for k, j in zip(pb.nh["k"], pb.nh["j"], strict=True):
+            rows.append((r, frame_cols(int(k)) + frame_cols(int(j))))
             r += 1
+    if pb.accel is not None:
+        for k in range(n - 3):
+            cols = [c for d in range(4) for c in frame_cols(k + d)]
+            for _ in range(3):
+                rows.append((r, cols))
+                r += 1
     if n >= 3:
         for _ in range(2):  # position and rotation smoothness
             for k in range(n - 2):
@@ -928,6 +948,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         # Nothing else fixes the absolute attitude: the INS's is taken as is.
         bias_sigma[:3] = 0.005 * DEG
     odo_pairs = _odometry_pairs(inp, w_t, w_r, zupt, degenerate, health, sig, T_first)
+    accel = _accel_steps(inp, gyro, health, sig)
     if odo_pairs is not None and odo_pairs["yaw_offset"] and n >= 2:
         D_base = turn_lidar_poses(D, odo_pairs["yaw_offset"])
         d_t, d_R = D_base[:, :3, 3].copy(), D_base[:, :3, :3].copy()
@@ -957,6 +978,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         odo_pairs=odo_pairs,
         gyro=gyro,
         nh=_rail_motion(inp, n, sig),
+        accel=accel,
         zupt=zupt,
         diff2=difference_weights(np.asarray(inp.times, dtype=np.float64), 2),
         diff3=difference_weights(np.asarray(inp.times, dtype=np.float64), 3),
@@ -995,7 +1017,32 @@ def _gyro_steps(
     if steps is None or not np.any(steps.ok):
         return None
     sigma = np.hypot((sig.gyro_r * (1.0 + GAP_SIGMA_FACTOR * steps.gap))[:, None], steps.sd_interp)
-    return {"D": steps.D, "w": np.where(steps.ok[:, None], 1.0 / sigma, 0.0)}
+    return {"D": steps.D, "w": np.where(steps.ok[:, None], 1.0 / sigma, 0.0), "steps": steps}
+
+
+def _accel_steps(
+    inp: LocalizationInput, gyro: dict | None, health: Health, sig: Sigmas
+) -> dict | None:
+    """The accelerometer block (:mod:`.accelerometer`) on the gyros' chain and clock
+    offset: meas and w (n-3, 3); None without gyro steps, records, or when switched off."""
+    n = len(inp.frames)
+    if gyro is None or n < 4 or not (sig.accel and inp.options.get("fused_accel", True)):
+        return None
+    steps = gyro["steps"]
+    stencil = difference_weights(np.asarray(inp.times, dtype=np.float64), 3)
+    return accel_block(
+        inp, steps.chain, steps.offset_s, steps.imu_rate_hz, stencil, sig.accel_jerk, health
+    )
+
+
+def _accel_residuals(pb: Problem, R: F64, p: F64) -> F64:
+    """(n-3, 3) normalised residuals of the accelerometer block: the positions' third
+    differences (base axes of each stencil's second frame) against the accelerometers'."""
+    assert pb.accel is not None
+    c = pb.diff3
+    j_world = c[:, :1] * p[:-3] + c[:, 1:2] * p[1:-2] + c[:, 2:3] * p[2:-1] + c[:, 3:] * p[3:]
+    j_base = np.einsum("nji,nj->ni", R[1:-2], j_world)
+    return (j_base - pb.accel["meas"]) * pb.accel["w"] / pb.s("accel")
 
 
 def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
@@ -1008,15 +1055,17 @@ def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
     ran within their goals with d = 0)."""
     if n < 2 or not (sig.rail_motion and inp.options.get("fused_rail_motion", True)):
         return None
-    return {"w": np.full(n - 1, 1.0 / sig.rail_motion_lat), "d": 0.0}
+    k = np.arange(n - 1, dtype=np.int64)
+    return {"k": k, "j": k + 1, "w": np.full(n - 1, 1.0 / sig.rail_motion_lat), "d": 0.0}
 
 
 def _rail_motion_residuals(pb: Problem, R: F64, p: F64) -> F64:
     """(n-1,) normalised residuals of the rail motion: frame k + 1's lateral position in
     frame k against the turn between them times (half the step + ``d``)."""
     assert pb.nh is not None
-    B = np.einsum("nji,nj->ni", R[:-1], p[1:] - p[:-1])
-    theta = _log_rotation(np.swapaxes(R[:-1], 1, 2) @ R[1:])[:, 2]
+    k, j = pb.nh["k"], pb.nh["j"]
+    B = np.einsum("nji,nj->ni", R[k], p[j] - p[k])
+    theta = _log_rotation(np.swapaxes(R[k], 1, 2) @ R[j])[:, 2]
     pred = theta * (0.5 * B[:, 0] + pb.nh["d"])
     return (B[:, 1] - pred) * pb.nh["w"] / pb.s("nh")
 
@@ -1507,11 +1556,13 @@ def _frame_period(pb: Problem) -> int:
     """The smallest period P >= 3 such that no residual row touches two frames a multiple
     of P apart: rows link frames 1 and 2 apart (odometry, smoothness) and the ground pairs'
     lags."""
-    gaps = {1, 2, 3} if pb.sig.jerk is not None else {1, 2}
+    gaps = {1, 2, 3} if pb.sig.jerk is not None or pb.accel is not None else {1, 2}
     if pb.ground is not None:
         gaps |= {int(d) for d in np.unique(pb.ground["j"] - pb.ground["k"])}
     if pb.odo_pairs is not None:
         gaps |= {int(d) for d in np.unique(pb.odo_pairs["j"] - pb.odo_pairs["k"])}
+    if pb.nh is not None:
+        gaps |= {int(d) for d in np.unique(pb.nh["j"] - pb.nh["k"])}
     period = 3
     while any(d % period == 0 for d in gaps):
         period += 1
@@ -1672,7 +1723,7 @@ def misalignment(x: F64, n: int) -> InsToLidar:
 #: count (residuals are stacked as (rows, components)), in :func:`residuals`' order.
 SCALED_BLOCKS = (
     "odo_t", "odo_r", "ins_p", "ins_r", "rail_lat", "rail_vert", "rail_r", "ground", "ins_v",
-    "odo_pair", "gyro", "nh",
+    "odo_pair", "gyro", "nh", "accel",
 )  # fmt: skip
 #: Median of a chi-square variable with one degree of freedom: a robust variance factor
 #: of normalised residuals is ``median(r^2) / CHI2_1_MEDIAN``.
@@ -1708,7 +1759,9 @@ def _block_sizes(pb: Problem) -> list[tuple[str, int, int]]:
     if pb.gyro is not None:
         sizes.append(("gyro", n - 1, 3))
     if pb.nh is not None:
-        sizes.append(("nh", n - 1, 1))
+        sizes.append(("nh", len(pb.nh["k"]), 1))
+    if pb.accel is not None:
+        sizes.append(("accel", n - 3, 3))
     return sizes
 
 

@@ -94,6 +94,7 @@ class GyroSteps:
     sd_interp : (n-1, 3) the interpolation's standard error per base axis (rad)
     offset_s : the record clock's offset against the lidar's (s)
     imu_rate_hz : samples per second used to turn rad/sample into rad/s
+    chain : the records' chain the steps were read from (for the accelerometers)
     """
 
     D: F64
@@ -102,6 +103,7 @@ class GyroSteps:
     sd_interp: F64
     offset_s: float
     imu_rate_hz: float
+    chain: GyroChain | None = None
 
 
 @dataclass(frozen=True)
@@ -452,4 +454,4 @@ def gyro_steps(
     health.metrics["fused_gyro_offset_se_ms"] = 1000.0 * se if np.isfinite(se) else -1.0
     health.metrics["fused_gyro_steps"] = float(np.sum(ok))
     health.metrics["fused_gyro_imu_rate_hz"] = rate_hz
-    return GyroSteps(D, ok, gap, sd, offset, rate_hz)
+    return GyroSteps(D, ok, gap, sd, offset, rate_hz, chain)
