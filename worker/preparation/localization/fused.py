@@ -601,7 +601,7 @@ def _cached_sparsity(pb: Problem) -> csc_matrix:
         pb.vel is None,
         None if pb.odo_pairs is None else len(pb.odo_pairs["k"]),
         pb.gyro is None,
-        None if pb.nh is None else len(pb.nh["k"]),
+        pb.nh is None,
         pb.accel is None,
     )
     if pb.structure is None or pb.structure[0] != key:
@@ -669,8 +669,8 @@ def sparsity(pb: Problem) -> csc_matrix:
                 rows.append((r, frame_cols(k) + frame_cols(k + 1)))
                 r += 1
     if pb.nh is not None:
-        for k, j in zip(pb.nh["k"], pb.nh["j"], strict=True):
-            rows.append((r, frame_cols(int(k)) + frame_cols(int(j))))
+        for k in range(n - 1):
+            rows.append((r, frame_cols(k) + frame_cols(k + 1)))
             r += 1
     if pb.accel is not None:
         for k in range(n - 3):
@@ -1055,17 +1055,15 @@ def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
     ran within their goals with d = 0)."""
     if n < 2 or not (sig.rail_motion and inp.options.get("fused_rail_motion", True)):
         return None
-    k = np.arange(n - 1, dtype=np.int64)
-    return {"k": k, "j": k + 1, "w": np.full(n - 1, 1.0 / sig.rail_motion_lat), "d": 0.0}
+    return {"w": np.full(n - 1, 1.0 / sig.rail_motion_lat), "d": 0.0}
 
 
 def _rail_motion_residuals(pb: Problem, R: F64, p: F64) -> F64:
     """(n-1,) normalised residuals of the rail motion: frame k + 1's lateral position in
     frame k against the turn between them times (half the step + ``d``)."""
     assert pb.nh is not None
-    k, j = pb.nh["k"], pb.nh["j"]
-    B = np.einsum("nji,nj->ni", R[k], p[j] - p[k])
-    theta = _log_rotation(np.swapaxes(R[k], 1, 2) @ R[j])[:, 2]
+    B = np.einsum("nji,nj->ni", R[:-1], p[1:] - p[:-1])
+    theta = _log_rotation(np.swapaxes(R[:-1], 1, 2) @ R[1:])[:, 2]
     pred = theta * (0.5 * B[:, 0] + pb.nh["d"])
     return (B[:, 1] - pred) * pb.nh["w"] / pb.s("nh")
 
@@ -1561,8 +1559,6 @@ def _frame_period(pb: Problem) -> int:
         gaps |= {int(d) for d in np.unique(pb.ground["j"] - pb.ground["k"])}
     if pb.odo_pairs is not None:
         gaps |= {int(d) for d in np.unique(pb.odo_pairs["j"] - pb.odo_pairs["k"])}
-    if pb.nh is not None:
-        gaps |= {int(d) for d in np.unique(pb.nh["j"] - pb.nh["k"])}
     period = 3
     while any(d % period == 0 for d in gaps):
         period += 1
@@ -1759,7 +1755,7 @@ def _block_sizes(pb: Problem) -> list[tuple[str, int, int]]:
     if pb.gyro is not None:
         sizes.append(("gyro", n - 1, 3))
     if pb.nh is not None:
-        sizes.append(("nh", len(pb.nh["k"]), 1))
+        sizes.append(("nh", n - 1, 1))
     if pb.accel is not None:
         sizes.append(("accel", n - 3, 3))
     return sizes
