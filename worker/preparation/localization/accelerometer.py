@@ -30,7 +30,12 @@ from numpy.typing import NDArray
 
 from geometry.poses import R_INS_BASE_NOMINAL
 from worker.preparation.localization.base import Health, LocalizationInput
-from worker.preparation.localization.gyro import GyroChain, rotations_at
+from worker.preparation.localization.gyro import (
+    GyroChain,
+    lagrange_at,
+    read_corrimu,
+    rotations_at,
+)
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -60,23 +65,8 @@ class AccelJerks:
 def read_accelerations(inp: LocalizationInput, imu_rate_hz: float) -> tuple[F64, F64] | None:
     """(m,) record stamps and (m, 3) accelerations (m/s^2 along INS X, Y, Z) of the
     sequence's ``novatel_oem7_corrimu``, None when it has none (or fewer than four)."""
-    try:
-        ci = inp.sequence.corr_imu()
-    except (FileNotFoundError, ValueError, KeyError) as exc:
-        log.info("no accelerometer records: %s", exc)
-        return None
-    t = np.asarray(ci.timestamp, dtype=np.float64)
-    acc = np.column_stack([ci.lateral_acc, ci.longitudinal_acc, ci.vertical_acc])
-    acc = acc.astype(np.float64) * imu_rate_hz
-    keep = np.isfinite(t) & np.all(np.isfinite(acc), axis=1)
-    t, acc = t[keep], acc[keep]
-    order = np.argsort(t, kind="stable")
-    t, acc = t[order], acc[order]
-    uniq = np.concatenate([[True], np.diff(t) > 0])
-    t, acc = t[uniq], acc[uniq]
-    if len(t) < 4:
-        return None
-    return t, acc
+    got = read_corrimu(inp, ("lateral_acc", "longitudinal_acc", "vertical_acc"), imu_rate_hz)
+    return got if got is not None and len(got[0]) >= 4 else None
 
 
 @dataclass(frozen=True)
@@ -142,7 +132,7 @@ def position_chain(chain: GyroChain, acc_ins: F64) -> PositionChain:
         before, after = have[have < g][-2:], have[have > g][:2]
         idx = np.concatenate([before, after])
         if len(before) == 2 and len(after) == 2:
-            a[g] = _lagrange_rows(mid[idx], a[idx], float(mid[g]))
+            a[g] = lagrange_at(mid[idx], a[idx], float(mid[g]))
         else:
             a[g] = np.mean(a[idx], axis=0)
     v = np.vstack([np.zeros((1, 3)), np.cumsum(a * h[:, None], axis=0)])
@@ -161,18 +151,6 @@ def position_chain(chain: GyroChain, acc_ins: F64) -> PositionChain:
             todo[i] = False
     p = np.vstack([np.zeros((1, 3)), np.cumsum(step, axis=0)])
     return PositionChain(t, p, v, np.array(rough) | (todo & ~even), np.array(bridged))
-
-
-def _lagrange_rows(x: F64, y: F64, at: float) -> F64:
-    """The polynomial through points (x, y) (y: (q, 3)) evaluated at ``at``."""
-    out = np.zeros(y.shape[1])
-    for a in range(len(x)):
-        basis = 1.0
-        for b in range(len(x)):
-            if b != a:
-                basis *= (at - x[b]) / (x[a] - x[b])
-        out += basis * y[a]
-    return out
 
 
 #: Integration weights of the cubic through four equally spaced values over one interval:

@@ -223,7 +223,8 @@ def rotations_at(chain: GyroChain, t: F64) -> tuple[F64, NDArray[np.bool_], F64]
         idx = np.arange(max(i - 1, 0), min(i + 3, m))
         phi = Rotation.from_matrix(chain.R[i].T @ chain.R[idx]).as_rotvec()  # (len(idx), 3)
         out[q] = (
-            chain.R[i] @ Rotation.from_rotvec(_lagrange(chain.t[idx], phi, float(t[q]))).as_matrix()
+            chain.R[i]
+            @ Rotation.from_rotvec(lagrange_at(chain.t[idx], phi, float(t[q]))).as_matrix()
         )
         span = chain.t[i + 1] - chain.t[i]
         f = (t[q] - chain.t[i]) / span
@@ -232,7 +233,7 @@ def rotations_at(chain: GyroChain, t: F64) -> tuple[F64, NDArray[np.bool_], F64]
     return out, ok, sd
 
 
-def _lagrange(x: F64, y: F64, at: float) -> F64:
+def lagrange_at(x: F64, y: F64, at: float) -> F64:
     """The polynomial through points (x, y) (y: (p, 3)) evaluated at ``at``."""
     out = np.zeros(y.shape[1])
     for a in range(len(x)):
@@ -382,25 +383,35 @@ def fit_alignment(
     return np.array([x[0], x[1], 0.0]), np.array([se[0], se[1], np.inf])
 
 
-def read_rates(inp: LocalizationInput, imu_rate_hz: float) -> tuple[F64, F64] | None:
-    """(m,) record stamps and (m, 3) rates (rad/s about INS X, Y, Z) of the sequence's
-    ``novatel_oem7_corrimu``, None when it has none (or fewer than two records)."""
+def read_corrimu(
+    inp: LocalizationInput, fields: tuple[str, str, str], per_second: float
+) -> tuple[F64, F64] | None:
+    """(m,) record stamps and (m, 3) columns ``fields`` of the sequence's
+    ``novatel_oem7_corrimu`` times ``per_second`` (per IMU sample -> per second), sorted,
+    one record per stamp, records with a non-finite value left out; None when it has none
+    (or fewer than two records)."""
     try:
         ci = inp.sequence.corr_imu()
     except (FileNotFoundError, ValueError, KeyError) as exc:
-        log.info("no gyro records: %s", exc)
+        log.info("no IMU records: %s", exc)
         return None
     t = np.asarray(ci.timestamp, dtype=np.float64)
-    rates = np.column_stack([ci.pitch_rate, ci.roll_rate, ci.yaw_rate]).astype(np.float64)
-    keep = np.isfinite(t) & np.all(np.isfinite(rates), axis=1)
-    t, rates = t[keep], rates[keep] * imu_rate_hz
+    vals = np.column_stack([getattr(ci, f) for f in fields]).astype(np.float64)
+    keep = np.isfinite(t) & np.all(np.isfinite(vals), axis=1)
+    t, vals = t[keep], vals[keep] * per_second
     order = np.argsort(t, kind="stable")
-    t, rates = t[order], rates[order]
+    t, vals = t[order], vals[order]
     uniq = np.concatenate([[True], np.diff(t) > 0])
-    t, rates = t[uniq], rates[uniq]
+    t, vals = t[uniq], vals[uniq]
     if len(t) < 2:
         return None
-    return t, rates
+    return t, vals
+
+
+def read_rates(inp: LocalizationInput, imu_rate_hz: float) -> tuple[F64, F64] | None:
+    """(m,) record stamps and (m, 3) rates (rad/s about INS X, Y, Z) of the sequence's
+    ``novatel_oem7_corrimu``, None when it has none (or fewer than two records)."""
+    return read_corrimu(inp, ("pitch_rate", "roll_rate", "yaw_rate"), imu_rate_hz)
 
 
 def gyro_steps(
