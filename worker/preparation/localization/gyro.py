@@ -390,11 +390,14 @@ def read_corrimu(
     ``novatel_oem7_corrimu`` times ``per_second`` (per IMU sample -> per second), sorted,
     one record per stamp, records with a non-finite value left out; None when it has none
     (or fewer than two records)."""
-    try:
-        ci = inp.sequence.corr_imu()
-    except (FileNotFoundError, ValueError, KeyError) as exc:
-        log.info("no IMU records: %s", exc)
-        return None
+    ci = inp.options.get("_corrimu")  # read once for the gyros and the accelerometers
+    if ci is None:
+        try:
+            ci = inp.sequence.corr_imu()
+        except (FileNotFoundError, ValueError, KeyError) as exc:
+            log.info("no IMU records: %s", exc)
+            return None
+        inp.options["_corrimu"] = ci
     t = np.asarray(ci.timestamp, dtype=np.float64)
     vals = np.column_stack([getattr(ci, f) for f in fields]).astype(np.float64)
     keep = np.isfinite(t) & np.all(np.isfinite(vals), axis=1)
