@@ -1233,8 +1233,10 @@ def _odometry_pairs(
     weights already say what the odometry is worth there); a run degenerate along the
     track keeps only the lateral component. The lag-L pairs of consecutive k share L - 1
     steps: their sigmas are multiplied by sqrt(L) so that together they count about as
-    one pair a lag apart. Returns k, j (Q,), T_k_j (Q, 4, 4) and w (Q, 2): 1/sigma of
-    frame j's position in frame k along the track and laterally."""
+    one pair a lag apart, by sqrt(count) where fewer than L pairs are kept (a sequence
+    shorter than two lags: its few pairs overlap in most steps and count as one).
+    Returns k, j (Q,), T_k_j (Q, 4, 4) and w (Q, 2): 1/sigma of frame j's position in
+    frame k along the track and laterally."""
     n = len(inp.frames)
     lags = [int(L) for L in sig.odo_pair_lags if 0 < int(L) < n]
     if not lags or len(w_t) == 0:
@@ -1252,7 +1254,8 @@ def _odometry_pairs(
         k = k[bad[k + L] - bad[k] == 0]
         if not len(k):
             continue
-        sigma = (np.asarray(sig.odo_pair_t_a) + L * np.asarray(sig.odo_pair_t_b)) * np.sqrt(L)
+        share = np.sqrt(min(len(k), L))
+        sigma = (np.asarray(sig.odo_pair_t_a) + L * np.asarray(sig.odo_pair_t_b)) * share
         w = np.tile(1.0 / sigma, (len(k), 1))
         if degenerate:
             w[:, 0] = 0.0
