@@ -87,7 +87,7 @@ from worker.preparation.localization.odometry import (
     odometry_track,
 )
 from worker.preparation.localization.rails import RailsStrategy, orientation_noise, rail_frames
-from worker.preparation.localization.scan_errors import with_scan_errors
+from worker.preparation.localization.scan_errors import with_scan_errors, with_step_differences
 from worker.preparation.localization.scan_pairs import (
     closure_factor,
     register_pairs,
@@ -244,6 +244,13 @@ class Sigmas:
     #: times adds. The option ``fused_gyro: false`` turns it off.
     gyro: bool = True
     gyro_r: float = 0.001 * DEG
+    #: Prior sigma of the gyros' constant bias (rad/s, base axes), estimated with the
+    #: poses: a tactical-grade IMU's residual bias is degrees per hour (5 deg/h: 14 mdeg
+    #: over a 10 s sequence, 1.8 px at 50 m on rgb_highres_center). The heading's bias
+    #: has no reference but the lidar's lateral motion; with a looser prior (10 deg/h) it
+    #: took up the merged cloud's errors on some matrix cells (station-f100-d1-osdar23-s1:
+    #: the anchor error 0.54 -> 2.4 px; 1.3 px at 5 deg/h).
+    gyro_bias: float = 5.0 * DEG / 3600.0
     #: A rail vehicle's base moves along its own axis (:func:`_rail_motion`): frame k + 1's
     #: lateral position in frame k is the chord of the turn between them plus the turn
     #: times the base's distance ahead of the bogies' midpoint, within this sigma per step
@@ -251,6 +258,11 @@ class Sigmas:
     #: The option ``fused_rail_motion: false`` turns it off.
     rail_motion: bool = True
     rail_motion_lat: float = 0.003
+    #: Share of a rail-motion step's variance that adds up over steps in the solution's
+    #: information: the rest is the body's sway, an offset from the rail-following path
+    #: that stays within millimetres (:mod:`.scan_errors`: the steps' errors as
+    #: differences of per-frame offsets; 1: independent steps).
+    rail_motion_drift_share: float = 0.25
     #: The INS's accelerometers (:mod:`.accelerometer`): the third differences of the
     #: positions they see, sigma (along, lateral, vertical, m) per stencil: a
     #: tactical-grade accelerometer's velocity noise over 0.1 s is a few tenths of a
@@ -427,7 +439,12 @@ def _frames_sharing(s: F64, length_m: float) -> F64:
 
 
 def _n_params(n: int, n_knots: int) -> int:
-    """Length of the parameter vector: poses, misalignment, INS bias knots."""
+    """Length of the parameter vector: poses, misalignment, INS bias knots, gyro bias."""
+    return 6 * n + 7 + 6 * n_knots + 3
+
+
+def _gyro_bias_col(n: int, n_knots: int) -> int:
+    """First column of the gyros' bias (3: rad/s about the base axes)."""
     return 6 * n + 7 + 6 * n_knots
 
 
@@ -447,7 +464,8 @@ def _misalignment_of(x: F64, pb: Problem) -> tuple[F64, F64, float]:
 
 def _bias_knots_of(x: F64, pb: Problem) -> F64:
     """(n_knots, 6) INS bias knots: attitude (world rotation vector, rad), position (m)."""
-    return x[6 * pb.n + 7 :].reshape(pb.n_knots, 6)
+    i0 = 6 * pb.n + 7
+    return x[i0 : i0 + 6 * pb.n_knots].reshape(pb.n_knots, 6)
 
 
 def _bias_at_records(x: F64, pb: Problem) -> F64:
@@ -477,9 +495,9 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
     """All residual blocks, stacked (see the module docstring).
 
     ``same_poses`` = (R, p, r) of a parameter vector with the same pose part as ``x``:
-    then only the blocks of the misalignment and the INS bias (the INS residuals and the
-    priors) are computed, the others copied from ``r`` (the Jacobian's columns of those
-    parameters; the same values as a full evaluation).
+    then only the blocks of the misalignment, the INS bias and the gyro bias (the INS
+    and gyro residuals and the priors) are computed, the others copied from ``r`` (the
+    Jacobian's columns of those parameters; the same values as a full evaluation).
     """
     if same_poses is not None:
         R, p, r = same_poses
@@ -488,6 +506,10 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
         i0 = 6 * (pb.n - 1)
         r[i0 : i0 + len(out_ins)] = out_ins
         r[len(r) - len(out_prior) :] = out_prior
+        if pb.gyro is not None:
+            g = _gyro_residuals(x, pb, R)
+            i0 = _block_offsets(pb)["gyro"]
+            r[i0 : i0 + len(g)] = g
         return r
     R, p, _, _, _ = _unpack(x, pb)
     sig = pb.sig
@@ -527,8 +549,7 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
     if pb.odo_pairs is not None:
         out.append(_odometry_pair_residuals(pb, R, p).ravel())
     if pb.gyro is not None:
-        E = np.swapaxes(pb.gyro["D"], 1, 2) @ Rt @ R[1:]
-        out.append((_log_rotation(E) * pb.gyro["w"] / pb.s("gyro")).ravel())
+        out.append(_gyro_residuals(x, pb, R))
     if pb.nh is not None:
         out.append(_rail_motion_residuals(pb, R, p))
     if pb.accel is not None:
@@ -549,6 +570,17 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
         out.append((j_base / np.asarray(sig.jerk)).ravel())
     out.append(_prior_blocks(x, pb))
     return np.concatenate(out)
+
+
+def _gyro_residuals(x: F64, pb: Problem, R: F64) -> F64:
+    """((n-1) 3,) normalised residuals of the gyro steps: the gyros measure D Exp(b dt),
+    their constant bias b turning each step by b dt."""
+    assert pb.gyro is not None
+    i0 = _gyro_bias_col(pb.n, pb.n_knots)
+    b_dt = x[i0 : i0 + 3][None, :] * pb.gyro["dt"][:, None]
+    D_true = pb.gyro["D"] @ Rotation.from_rotvec(-b_dt).as_matrix()
+    E = np.swapaxes(D_true, 1, 2) @ np.swapaxes(R[:-1], 1, 2) @ R[1:]
+    return (_log_rotation(E) * pb.gyro["w"] / pb.s("gyro")).ravel()
 
 
 def _ins_blocks(x: F64, pb: Problem, R: F64, p: F64) -> F64:
@@ -584,6 +616,8 @@ def _prior_blocks(x: F64, pb: Problem) -> F64:
     out.append(lever / pb.lever_sigma)
     out.append(bore / pb.bore_sigma)
     out.append(np.array([lat / sig.latency]))
+    i0 = _gyro_bias_col(pb.n, pb.n_knots)
+    out.append(x[i0 : i0 + 3] / np.asarray(sig.gyro_bias))
     knots = _bias_knots_of(x, pb)
     out.append((knots / pb.bias_sigma).ravel())
     out.append((np.diff(knots, axis=0) / pb.bias_step_sigma).ravel())
@@ -663,10 +697,11 @@ def sparsity(pb: Problem) -> csc_matrix:
             for _ in range(3):
                 rows.append((r, frame_cols(int(k)) + frame_cols(int(j))))
                 r += 1
+    gyro_bias = list(range(_gyro_bias_col(n, pb.n_knots), m_cols))
     if pb.gyro is not None:
         for k in range(n - 1):
             for _ in range(3):
-                rows.append((r, frame_cols(k) + frame_cols(k + 1)))
+                rows.append((r, frame_cols(k) + frame_cols(k + 1) + gyro_bias))
                 r += 1
     if pb.nh is not None:
         for k in range(n - 1):
@@ -692,6 +727,9 @@ def sparsity(pb: Problem) -> csc_matrix:
                 r += 1
     for j in range(7):
         rows.append((r, [6 * n + j]))
+        r += 1
+    for c in gyro_bias:
+        rows.append((r, [c]))
         r += 1
     for j in range(pb.n_knots):  # bias size
         for c in knot_cols(j):
@@ -1017,7 +1055,12 @@ def _gyro_steps(
     if steps is None or not np.any(steps.ok):
         return None
     sigma = np.hypot((sig.gyro_r * (1.0 + GAP_SIGMA_FACTOR * steps.gap))[:, None], steps.sd_interp)
-    return {"D": steps.D, "w": np.where(steps.ok[:, None], 1.0 / sigma, 0.0), "steps": steps}
+    return {
+        "D": steps.D,
+        "w": np.where(steps.ok[:, None], 1.0 / sigma, 0.0),
+        "dt": np.diff(np.asarray(inp.times, dtype=np.float64)),
+        "steps": steps,
+    }
 
 
 def _accel_steps(
@@ -1574,7 +1617,8 @@ def _column_groups(n: int, n_knots: int, period: int = 3) -> list[NDArray[np.int
     A residual row touches frames that are never a multiple of ``period`` apart
     (:func:`_frame_period`), the misalignment and two consecutive bias knots, so frame
     columns with the same (frame mod period, component) go together, as do knot columns
-    with the same (knot mod 3, component); the 7 misalignment columns each stand alone.
+    with the same (knot mod 3, component); the 7 misalignment columns each stand alone,
+    the first three each with one of the gyro bias' (which only gyro rows touch).
     """
     groups = []
     for phase in range(period):
@@ -1582,7 +1626,8 @@ def _column_groups(n: int, n_knots: int, period: int = 3) -> list[NDArray[np.int
             frames = np.arange(phase, n, period)
             if len(frames):
                 groups.append(6 * frames + comp)
-    groups.extend(np.array([6 * n + j]) for j in range(7))
+    gb = _gyro_bias_col(n, n_knots)
+    groups.extend(np.array([6 * n + j] + ([gb + j] if j < 3 else [])) for j in range(7))
     for phase in range(3):
         for comp in range(6):
             knots = np.arange(phase, n_knots, 3)
@@ -2052,6 +2097,14 @@ def information(pb: Problem, x: F64) -> PoseInformation:
         q = np.arange(len(pb.odo_pairs["k"]))
         w[(i0 + 3 * q[:, None] + np.array([0, 1])).ravel()] = 0.0
     J, w = _with_scan_errors(pb, J, w)
+    if pb.nh is not None and pb.sig.rail_motion_drift_share < 1.0:
+        # the sway: each step's lateral error the difference of two frames' offsets
+        rows = _block_offsets(pb)["nh"] + np.arange(pb.n - 1)
+        a = pb.nh["w"] / pb.s("nh")
+        J, w = with_step_differences(
+            J, w, rows[:, None], np.broadcast_to(a, (pb.n - 1,))[:, None],
+            np.ones(pb.n - 1, dtype=bool), pb.sig.rail_motion_drift_share,
+        )  # fmt: skip
     A = (J.T.multiply(w[None, :]).tocsc() @ J).tocsc()
     meas = np.concatenate([b.ravel() for b in measurement_blocks(pb, x).values()])
     meas = meas[meas != 0.0]
@@ -2114,6 +2167,10 @@ class FusedStrategy:
         health.metrics["fused_ins_position_bias_max_m"] = float(
             np.max(np.linalg.norm(knots[:, 3:], axis=1))
         )
+        if pb.gyro is not None:
+            i0 = _gyro_bias_col(pb.n, pb.n_knots)
+            for axis, b in zip(("roll", "pitch", "heading"), x[i0 : i0 + 3], strict=True):
+                health.metrics[f"fused_gyro_bias_{axis}_deg_h"] = float(np.degrees(b) * 3600.0)
         notes = self._observability(inp, pb, health)
         info = information(pb, x)
         health.metrics["fused_variance_factor_global"] = info.scale

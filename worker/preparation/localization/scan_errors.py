@@ -52,38 +52,59 @@ def with_scan_errors(
     ``m + 6 k .. m + 6 k + 6`` (rotation, then translation, as the frames' own columns),
     P prior rows of weight 1 appended.
     """
+    return with_step_differences(
+        J, w, np.hstack([rows_r, rows_t]), np.hstack([a_r, a_t]), use, drift_share
+    )
+
+
+def with_step_differences(
+    J: csc_matrix,
+    w: F64,
+    rows: I64,
+    a: F64,
+    use: NDArray[np.bool_],
+    drift_share: float,
+) -> tuple[csc_matrix, F64]:
+    """Step rows whose errors are differences of per-frame errors, as nuisance columns.
+
+    J : (R, m); w : (R,); rows : (n-1, C) the rows of C components of each step
+    between frames k and k + 1; a : (n-1, C) their weights (1 / sigma); use : (n-1,)
+    the steps to model so; drift_share : as :func:`with_scan_errors`.
+
+    Returns (J', w'): J' is (R + C n, m + C n) with frame k's error of component c in
+    column ``m + C k + c``, its prior rows (weight 1) appended. A component no modelled
+    step touches gets a unit prior (decoupled: it only keeps the matrix regular).
+    """
     if not 0.0 < drift_share <= 1.0:
         raise ValueError(f"drift_share {drift_share} outside (0, 1]")
     R, m = J.shape
     n = len(use) + 1
+    C = rows.shape[1]
     if drift_share >= 1.0 or n < 2 or not np.any(use):
         return J, w
     # the modelled rows keep the drift's share of their variance
     row_scale = np.ones(R)
     new_rows, new_cols, new_vals = [], [], []
-    sig_e = np.full((n, 6), np.inf)
-    for rows, a, off in ((rows_r, a_r, 0), (rows_t, a_t, 3)):
-        for c in range(3):
-            k = np.flatnonzero(use & (a[:, c] > 0.0))
-            if not len(k):
-                continue
-            r = rows[k, c]
-            row_scale[r] = 1.0 / np.sqrt(drift_share)
-            v = a[k, c] / np.sqrt(drift_share)
-            new_rows += [r, r]
-            new_cols += [m + 6 * (k + 1) + off + c, m + 6 * k + off + c]
-            new_vals += [v, -v]
-            # e's prior: (1 - share) / 2 of the tighter adjacent step's variance
-            s_step = 1.0 / a[k, c]
-            s_e = np.sqrt(0.5 * (1.0 - drift_share)) * s_step
-            np.minimum.at(sig_e[:, off + c], k, s_e)
-            np.minimum.at(sig_e[:, off + c], k + 1, s_e)
+    sig_e = np.full((n, C), np.inf)
+    for c in range(C):
+        k = np.flatnonzero(use & (a[:, c] > 0.0))
+        if not len(k):
+            continue
+        r = rows[k, c]
+        row_scale[r] = 1.0 / np.sqrt(drift_share)
+        v = a[k, c] / np.sqrt(drift_share)
+        new_rows += [r, r]
+        new_cols += [m + C * (k + 1) + c, m + C * k + c]
+        new_vals += [v, -v]
+        # e's prior: (1 - share) / 2 of the tighter adjacent step's variance
+        s_e = np.sqrt(0.5 * (1.0 - drift_share)) / a[k, c]
+        np.minimum.at(sig_e[:, c], k, s_e)
+        np.minimum.at(sig_e[:, c], k + 1, s_e)
     scaled = (diags(row_scale) @ J).tocoo()
     rows_all = np.concatenate([scaled.row, *new_rows])
     cols_all = np.concatenate([scaled.col, *new_cols])
     vals_all = np.concatenate([scaled.data, *new_vals])
-    J_wide = coo_matrix((vals_all, (rows_all, cols_all)), shape=(R, m + 6 * n))
-    # a column no modelled step touches is decoupled: any prior keeps it finite
+    J_wide = coo_matrix((vals_all, (rows_all, cols_all)), shape=(R, m + C * n))
     s_e = np.where(np.isfinite(sig_e), sig_e, 1.0).ravel()
-    P = coo_matrix((1.0 / s_e, (np.arange(6 * n), m + np.arange(6 * n))), shape=(6 * n, m + 6 * n))
-    return vstack([J_wide, P]).tocsc(), np.concatenate([w, np.ones(6 * n)])
+    P = coo_matrix((1.0 / s_e, (np.arange(C * n), m + np.arange(C * n))), shape=(C * n, m + C * n))
+    return vstack([J_wide, P]).tocsc(), np.concatenate([w, np.ones(C * n)])
