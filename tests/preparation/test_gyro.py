@@ -226,6 +226,16 @@ def test_a_sequence_without_gyro_records_runs_without_them(sequence: Path, tmp_p
     assert not res.health.degraded, res.health.degraded
 
 
+def test_unreadable_gyro_records_are_said(sequence: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "seq"
+    shutil.copytree(sequence, folder)
+    for f in (folder / "novatel_oem7_corrimu").glob("*.csv"):
+        f.write_text(f.read_text().splitlines()[0] + "\n")  # the header alone
+    res = FusedStrategy().run(true_ego_input(folder))
+    assert res.health.metrics["fused_gyro_steps"] == 0.0
+    assert any("no readable gyro records" in w for w in res.health.warnings), res.health.warnings
+
+
 def test_a_wrong_imu_rate_is_found_and_said(sequence: Path) -> None:
     inp = true_ego_input(sequence)
     n = len(inp.frames)

@@ -46,6 +46,8 @@ from worker.preparation.localization.base import Health, LocalizationInput
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
+#: The sequence folder of the INS's corrected IMU increments.
+CORRIMU_FOLDER = "novatel_oem7_corrimu"
 #: IMU samples per second when the option ``imu_rate_hz`` does not say (NovAtel's
 #: CORRIMU gives rotation per IMU sample; the synthetic INS simulates a 100 Hz IMU).
 DEFAULT_IMU_RATE_HZ = 100.0
@@ -402,6 +404,8 @@ def read_corrimu(
     vals = np.column_stack([getattr(ci, f) for f in fields]).astype(np.float64)
     keep = np.isfinite(t) & np.all(np.isfinite(vals), axis=1)
     t, vals = t[keep], vals[keep] * per_second
+    if len(t) < 2:
+        return None
     order = np.argsort(t, kind="stable")
     t, vals = t[order], vals[order]
     uniq = np.concatenate([[True], np.diff(t) > 0])
@@ -429,6 +433,12 @@ def gyro_steps(
     got = read_rates(inp, rate_hz)
     if got is None:
         health.metrics["fused_gyro_steps"] = 0.0
+        folder = getattr(inp.sequence, "folder", None)
+        if folder is not None and (folder / CORRIMU_FOLDER).is_dir():
+            health.warn(
+                f"fused: {CORRIMU_FOLDER} holds no readable gyro records (fewer than two "
+                "rows with finite timestamps and rates); running without the gyros"
+            )
         return None
     t_rec, rates = got
     chain = gyro_chain(t_rec, rates)
