@@ -617,7 +617,7 @@ def _prior_blocks(x: F64, pb: Problem) -> F64:
     out.append(bore / pb.bore_sigma)
     out.append(np.array([lat / sig.latency]))
     i0 = _gyro_bias_col(pb.n, pb.n_knots)
-    out.append(x[i0 : i0 + 3] / np.asarray(sig.gyro_bias))
+    out.append(x[i0 : i0 + 3] / sig.gyro_bias)
     knots = _bias_knots_of(x, pb)
     out.append((knots / pb.bias_sigma).ravel())
     out.append((np.diff(knots, axis=0) / pb.bias_step_sigma).ravel())

@@ -41,13 +41,12 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from geometry.poses import R_INS_BASE_NOMINAL
+from worker.osdar.sequence import CORRIMU_DIR
 from worker.preparation.localization.base import Health, LocalizationInput
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
-#: The sequence folder of the INS's corrected IMU increments.
-CORRIMU_FOLDER = "novatel_oem7_corrimu"
 #: IMU samples per second when the option ``imu_rate_hz`` does not say (NovAtel's
 #: CORRIMU gives rotation per IMU sample; the synthetic INS simulates a 100 Hz IMU).
 DEFAULT_IMU_RATE_HZ = 100.0
@@ -434,9 +433,9 @@ def gyro_steps(
     if got is None:
         health.metrics["fused_gyro_steps"] = 0.0
         folder = getattr(inp.sequence, "folder", None)
-        if folder is not None and (folder / CORRIMU_FOLDER).is_dir():
+        if folder is not None and (folder / CORRIMU_DIR).is_dir():
             health.warn(
-                f"fused: {CORRIMU_FOLDER} holds no readable gyro records (fewer than two "
+                f"fused: {CORRIMU_DIR} holds no readable gyro records (fewer than two "
                 "rows with finite timestamps and rates); running without the gyros"
             )
         return None
