@@ -1,7 +1,8 @@
 """The accelerometers (CORRIMU) as the body's sway: summed twice on the gyros' chain,
-their third differences at the lidar times reproduce a known motion's, are blind to a
-constant bias, and on a synthetic sequence (accelerometer noise and bias on) match the
-true jerks of the base; ``fused`` with them follows the sway frame to frame."""
+their differences at the lidar times reproduce a known motion's (third differences blind
+to a constant bias, second ones seeing it as its acceleration), and on a synthetic
+sequence (accelerometer noise and bias on) match the true accelerations of the base;
+``fused`` with them follows the sway frame to frame and estimates their bias."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from geometry.poses import R_INS_BASE_NOMINAL, PoseTrack
 from tests.synth_fixtures import true_ego_input
-from worker.preparation.localization.accelerometer import BRIDGE_SIGMA_FACTOR, accel_jerks
+from worker.preparation.localization.accelerometer import BRIDGE_SIGMA_FACTOR, accel_differences
 from worker.preparation.localization.base import Health
 from worker.preparation.localization.fused import FusedStrategy, build_problem, difference_weights
 from worker.preparation.localization.fused import Sigmas as FusedSigmas
@@ -78,12 +79,12 @@ def test_the_third_differences_match_a_known_motion() -> None:
     rates, acc = _records(t_rec)
     chain = gyro_chain(t_rec, rates)
     t_lidar = t_rec[2:-2] + 0.037  # lidar frames between the records
-    got = accel_jerks(chain, t_rec, acc, t_lidar, 0.0, difference_weights(t_lidar, 3))
+    got = accel_differences(chain, t_rec, acc, t_lidar, 0.0, difference_weights(t_lidar, 3))
     truth = _true_jerks(t_lidar)
     assert got.ok.all()
     # the sway's jerks are 0.3 mm (lateral) and 1.4 mm (vertical) a stencil
     assert np.max(np.abs(truth[:, 1])) > 0.2 * MM and np.max(np.abs(truth[:, 2])) > 0.8 * MM
-    err = np.abs(got.jerk - truth)
+    err = np.abs(got.value - truth)
     assert np.all(err.max(axis=0) < 0.03 * MM), err.max(axis=0) / MM
 
 
@@ -93,11 +94,27 @@ def test_a_constant_bias_and_a_wrong_start_velocity_do_not_count() -> None:
     chain = gyro_chain(t_rec, rates)
     t_lidar = t_rec[2:-2] + 0.037
     c = difference_weights(t_lidar, 3)
-    clean = accel_jerks(chain, t_rec, acc, t_lidar, 0.0, c).jerk
-    biased = accel_jerks(chain, t_rec, acc + np.array([0.03, -0.02, 0.05]), t_lidar, 0.0, c)
+    clean = accel_differences(chain, t_rec, acc, t_lidar, 0.0, c).value
+    biased = accel_differences(chain, t_rec, acc + np.array([0.03, -0.02, 0.05]), t_lidar, 0.0, c)
     # 3-5 mg of bias: 15-25 mm over a second, nothing in a third difference (the base
     # turns by 0.02-0.04 rad/s here: a bias fixed to the body leaves micrometres)
-    assert np.max(np.abs(biased.jerk - clean)) < 0.002 * MM
+    assert np.max(np.abs(biased.value - clean)) < 0.002 * MM
+
+
+def test_a_constant_bias_shows_in_the_second_differences_as_its_acceleration() -> None:
+    t_rec = 100.0 + WINDOW * np.arange(50)
+    rates, acc = _records(t_rec)
+    chain = gyro_chain(t_rec, rates)
+    t_lidar = t_rec[2:-2] + 0.037
+    c = difference_weights(t_lidar, 2)
+    bias_ins = np.array([0.03, -0.02, 0.05])
+    clean = accel_differences(chain, t_rec, acc, t_lidar, 0.0, c).value
+    biased = accel_differences(chain, t_rec, acc + bias_ins, t_lidar, 0.0, c).value
+    # b h^2 per stencil (0.2-0.5 mm), the body turning by 0.02-0.04 rad/s: within 1 %
+    h2 = float(np.median(np.diff(t_lidar))) ** 2
+    expected = bias_ins @ R_INS_BASE_NOMINAL * h2
+    err = np.abs(biased - clean - expected)
+    assert np.all(err < 0.01 * np.abs(expected).max()), err.max(axis=0) / MM
 
 
 def test_a_missing_record_is_bridged_and_its_stencils_flagged() -> None:
@@ -107,11 +124,13 @@ def test_a_missing_record_is_bridged_and_its_stencils_flagged() -> None:
     keep[20] = False
     chain = gyro_chain(t_rec[keep], rates[keep])
     t_lidar = t_rec[2:-2] + 0.037
-    got = accel_jerks(chain, t_rec[keep], acc[keep], t_lidar, 0.0, difference_weights(t_lidar, 3))
+    got = accel_differences(
+        chain, t_rec[keep], acc[keep], t_lidar, 0.0, difference_weights(t_lidar, 3)
+    )
     assert got.ok.all()
     # the stencils whose span holds the missing window: three or four
     assert 3 <= np.sum(got.bridged > 0) <= 4
-    err = np.abs(got.jerk - _true_jerks(t_lidar))
+    err = np.abs(got.value - _true_jerks(t_lidar))
     # within the bound, widened as their sigma is (BRIDGE_SIGMA_FACTOR)
     limit = 0.03 * MM * (1.0 + BRIDGE_SIGMA_FACTOR * got.bridged)
     assert np.all(err.max(axis=1) < limit), err.max(axis=1) / MM
@@ -132,7 +151,9 @@ def _truth(folder: Path, times: np.ndarray) -> np.ndarray:
     return PoseTrack.from_csv(folder / "ground_truth/poses_dense.csv").interpolate(times)
 
 
-def test_the_accelerometers_of_a_synthetic_sequence_see_the_true_jerks(sequence: Path) -> None:
+def test_the_accelerometers_of_a_synthetic_sequence_see_the_true_accelerations(
+    sequence: Path,
+) -> None:
     from geometry.poses import reexpress
     from worker.bench.matrix import _truth as matrix_truth
 
@@ -142,15 +163,19 @@ def test_the_accelerometers_of_a_synthetic_sequence_see_the_true_jerks(sequence:
     assert pb.accel is not None
     world, truth, _ = matrix_truth(sequence)
     T = reexpress(truth, world, inp.world).interpolate(inp.times)
-    c, p, R, n = pb.diff3, T[:, :3, 3], T[:, :3, :3], pb.n
-    jw = sum(c[:, i : i + 1] * p[i : n - 3 + i] for i in range(4))
-    true_j = np.einsum("nji,nj->ni", R[1 : n - 2], jw)
+    c, p, R, n = pb.diff2, T[:, :3, 3], T[:, :3, :3], pb.n
+    aw = sum(c[:, i : i + 1] * p[i : n - 2 + i] for i in range(3))
+    true_a = np.einsum("nji,nj->ni", R[1 : n - 1], aw)
     ok = pb.accel["w"][:, 1] > 0
-    assert ok.sum() >= n - 5  # the ends aside
-    rms = np.sqrt(np.mean((pb.accel["meas"] - true_j)[ok] ** 2, axis=0))
-    signal = np.sqrt(np.mean(true_j[ok] ** 2, axis=0))
-    # hard profile: 3 mg bias (blind), 0.15 m/s/sqrt(h) -> 0.8 mm/s a window, 0.2 mm a
-    # stencil at most; the INS's lever arm (0.4 m) turns with the body's sway
+    assert ok.sum() >= n - 4  # the ends aside
+    err = (pb.accel["meas"] - true_a)[ok]
+    # hard profile: a constant bias of 3 mg per axis (1 sigma; 0.29 mm a stencil of 0.1 s)
+    # that fused estimates, 0.15 m/s/sqrt(h) -> 0.8 mm/s a window, and the INS's lever
+    # arm (0.4 m) turning with the body's sway
+    offset = np.mean(err, axis=0)
+    assert np.all(np.abs(offset) < 3 * 0.0294 * pb.accel["h2"]), offset / MM
+    rms = np.sqrt(np.mean((err - offset) ** 2, axis=0))
+    signal = np.sqrt(np.mean((true_a[ok] - np.mean(true_a[ok], axis=0)) ** 2, axis=0))
     assert rms[1] < 0.1 * MM and rms[2] < 0.3 * MM, (rms / MM, signal / MM)
     assert np.all(rms[1:] < 0.3 * signal[1:]), (rms / MM, signal / MM)
 
@@ -194,3 +219,58 @@ def test_a_sequence_without_imu_records_runs_without_accelerometers(
     res = FusedStrategy().run(inp)
     assert "fused_variance_factor_accel" not in res.health.metrics
     assert not res.health.degraded, res.health.degraded
+
+
+def _with_accel_bias(src: Path, dst: Path, column: str, mg: float) -> Path:
+    """A copy of the sequence at ``src`` whose CORRIMU ``column`` (m/s per IMU sample at
+    the synthetic 100 Hz) carries ``mg`` more."""
+    import csv
+
+    shutil.copytree(src, dst)
+    add = 9.80665e-3 * mg / 100.0
+    for f in sorted((dst / "novatel_oem7_corrimu").glob("*.csv")):
+        with f.open() as fh:
+            rows = list(csv.DictReader(fh))
+        for r in rows:
+            r[column] = repr(float(r[column]) + add)
+        with f.open("w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]), lineterminator="\n")
+            w.writeheader()
+            w.writerows(rows)
+    return dst
+
+
+@pytest.mark.slow
+def test_an_accelerometer_bias_is_estimated_and_kept_out_of_the_poses(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    from geometry.poses import reexpress
+    from worker.bench.matrix import _truth as matrix_truth
+    from worker.synth.generator import SynthConfig, generate
+
+    root = tmp_path_factory.mktemp("accel_bias")
+    cfg = SynthConfig(
+        scene="fire_site", frames=60, scale=0.05, seed=0, lidar_density=1.0,
+        ins_profile="good", cameras=(),
+    )  # fmt: skip
+    clean = generate(root / "clean", cfg).folder
+    # 10 mg along INS X: 0.1 mm a stencil, 18 cm over the 6 s if it went into the poses
+    expected = float((np.array([10.0, 0.0, 0.0]) @ R_INS_BASE_NOMINAL)[1])
+    biased = _with_accel_bias(clean, root / "biased", "lateral_acc", 10.0)
+    got = {}
+    for name, folder in (("clean", clean), ("biased", biased)):
+        inp = true_ego_input(folder)
+        world, truth, _ = matrix_truth(folder)
+        Tt = reexpress(truth, world, inp.world).interpolate(inp.times)
+        res = FusedStrategy().run(inp)
+        T = res.track.interpolate(inp.times)
+        lat = np.einsum("nj,nj->n", Tt[:-1, :3, 1], T[1:, :3, 3] - T[:-1, :3, 3])
+        lat_true = np.einsum("nj,nj->n", Tt[:-1, :3, 1], Tt[1:, :3, 3] - Tt[:-1, :3, 3])
+        got[name] = (
+            res.health.metrics["fused_accel_bias_lateral_mg"],
+            float(np.sqrt(np.mean((lat - lat_true) ** 2)) / MM),
+        )
+    seen = got["biased"][0] - got["clean"][0]
+    assert abs(seen - expected) < 2.0, (expected, got)
+    # the poses' lateral steps no worse than by a tenth of a millimetre
+    assert got["biased"][1] < got["clean"][1] + 0.1, got

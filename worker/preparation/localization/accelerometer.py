@@ -10,14 +10,17 @@ averaged over the logging window before the record (gravity removed, NovAtel's C
 
 Their sum, turned into one frame by the gyros' rotation (:class:`.gyro.GyroChain`),
 gives the velocity and, summed again, the position of the body at every record up to an
-unknown start velocity and position; an accelerometer's bias and the gravity left in by
-the INS's own attitude error add a slowly varying acceleration. A third difference of the
-positions at four consecutive lidar times (the stencil of ``fused``'s jerk prior) is blind
-to all three (a constant, a linear and a quadratic term), so that is what is measured:
-per frame the jerk the accelerometers see, in the base axes of the stencil's second
-frame, to be matched by the solution's positions. The lever arm between the INS and the
-base is left out: the body's rotation sway (a few hundredths of a degree) moves a point
-a metre away by a tenth of a millimetre, which the block's variance factor takes up.
+unknown start velocity and position, which a second difference of the positions at three
+consecutive lidar times (the stencil of ``fused``'s smoothness prior) is blind to. So
+that is what is measured: per frame the acceleration the accelerometers see, times the
+step squared, in the base axes of the stencil's middle frame, to be matched by the
+solution's positions. An accelerometer's bias and the gravity the INS's own attitude
+error leaves in add a slowly varying acceleration: ``fused`` estimates it with the poses
+(a third difference would be blind to it, and also to the lateral drift of a short
+sequence that nothing else holds: 7 mm over 10 frames on fire_site where the second
+differences keep 2). The lever arm between the INS and the base is left out: the body's
+rotation sway (a few hundredths of a degree) moves a point a metre away by a tenth of a
+millimetre, which the block's variance factor takes up.
 """
 
 from __future__ import annotations
@@ -47,17 +50,17 @@ BRIDGE_SIGMA_FACTOR = 1.0
 
 
 @dataclass(frozen=True)
-class AccelJerks:
-    """The accelerometers' third differences of the base positions.
+class AccelDifferences:
+    """The accelerometers' differences of the base positions over a stencil of lidar times.
 
-    jerk : (n-3, 3) sum_i c_ki p(t_(k+i)) in the base axes of frame k + 1 (m), c the
-        stencil weights given
-    ok : (n-3,) the four times lie inside the records, no window of irregular length
+    value : (n-q, 3) sum_i c_ki p(t_(k+i)) in the base axes of frame k + 1 (m), c the
+        stencil weights given (q + 1 per row, q the order)
+    ok : (n-q,) the stencil's times lie inside the records, no window of irregular length
         between them
-    bridged : (n-3,) windows of missing records between them (interpolated)
+    bridged : (n-q,) windows of missing records between them (interpolated)
     """
 
-    jerk: F64
+    value: F64
     ok: NDArray[np.bool_]
     bridged: F64
 
@@ -181,41 +184,43 @@ def _hermite_at(t_pts: F64, p: F64, v: F64, t: F64) -> F64:
     return out
 
 
-def accel_jerks(
+def accel_differences(
     chain: GyroChain,
     t_rec: F64,
     acc_ins: F64,
     t_lidar: F64,
     offset_s: float,
     stencil: F64,
-) -> AccelJerks:
-    """The accelerometers' third differences at the lidar times (see the module
-    docstring). chain : the gyros' chain over the same records (stamps ``t_rec`` (m,));
-    acc_ins : (m, 3) accelerations (m/s^2, INS axes); t_lidar : (n,) lidar times;
+) -> AccelDifferences:
+    """The accelerometers' differences of the positions at the lidar times (see the
+    module docstring). chain : the gyros' chain over the same records (stamps ``t_rec``
+    (m,)); acc_ins : (m, 3) accelerations (m/s^2, INS axes); t_lidar : (n,) lidar times;
     offset_s : the record clock's offset (the gyros', :func:`.gyro.time_offset`);
-    stencil : (n-3, 4) the third-difference weights at the lidar times."""
+    stencil : (n-q, q+1) the difference weights at the lidar times (q >= 2: second
+    differences see the accelerometers' bias, third ones do not)."""
     t_lidar = np.asarray(t_lidar, dtype=np.float64)
     n = len(t_lidar)
-    if n < 4 or len(chain.t) != len(t_rec) + 1:
-        q = max(n - 3, 0)
-        return AccelJerks(np.zeros((q, 3)), np.zeros(q, dtype=bool), np.zeros(q))
+    q = stencil.shape[1] - 1
+    if n <= q or len(chain.t) != len(t_rec) + 1:
+        rows = max(n - q, 0)
+        return AccelDifferences(np.zeros((rows, 3)), np.zeros(rows, dtype=bool), np.zeros(rows))
     pc = position_chain(chain, acc_ins)
     tq = t_lidar + offset_s
     P = _hermite_at(pc.t, pc.p, pc.v, tq)
     R, _, _ = rotations_at(chain, tq)
-    j_chain = sum(stencil[:, i : i + 1] * P[i : n - 3 + i] for i in range(4))
-    jerk = np.einsum("nji,nj->ni", R[1 : n - 2], j_chain)
-    # the four times inside the records (interpolated, not extrapolated)
+    d_chain = sum(stencil[:, i : i + 1] * P[i : n - q + i] for i in range(q + 1))
+    value = np.einsum("nji,nj->ni", R[1 : n - q + 1], d_chain)
+    # the stencil's times inside the records (interpolated, not extrapolated)
     inside = (tq > pc.t[0]) & (tq < pc.t[-1])
-    ok = inside[: n - 3] & inside[3:]
+    ok = inside[: n - q] & inside[q:]
     # the windows between the chain points around the stencil's first and last times:
     # none of irregular length; bridged ones counted
     idx = np.clip(np.searchsorted(pc.t, tq, side="right") - 1, 0, len(pc.t) - 2)
     rough = np.concatenate([[0], np.cumsum(pc.rough)])
     bridged = np.concatenate([[0], np.cumsum(pc.bridged)])
-    ok &= rough[idx[3:] + 1] - rough[idx[: n - 3]] == 0
-    n_bridged = (bridged[idx[3:] + 1] - bridged[idx[: n - 3]]).astype(np.float64)
-    return AccelJerks(jerk, ok, n_bridged)
+    ok &= rough[idx[q:] + 1] - rough[idx[: n - q]] == 0
+    n_bridged = (bridged[idx[q:] + 1] - bridged[idx[: n - q]]).astype(np.float64)
+    return AccelDifferences(value, ok, n_bridged)
 
 
 def accel_block(
@@ -227,9 +232,10 @@ def accel_block(
     sigma_m: tuple[float, float, float],
     health: Health,
 ) -> dict | None:
-    """``fused``'s accelerometer block: meas (n-3, 3) the third differences of the base
-    positions the accelerometers see (base axes of each stencil's second frame, m) and
-    w (n-3, 3) 1/sigma (0 where a record is missing); None without records."""
+    """``fused``'s accelerometer block: meas (n-q, 3) the differences of the base
+    positions the accelerometers see over the stencil's rows (base axes of each
+    stencil's second frame, m) and w (n-q, 3) 1/sigma (0 where a record is missing);
+    None without records."""
     got = read_accelerations(inp, imu_rate_hz)
     if got is None or chain is None:
         health.metrics["fused_accel_rows"] = 0.0
@@ -241,8 +247,8 @@ def accel_block(
     if not np.any(np.abs(acc) > 0):
         health.metrics["fused_accel_rows"] = 0.0
         return None
-    got_j = accel_jerks(chain, t_rec, acc, inp.times, offset_s, stencil)
-    sigma = np.asarray(sigma_m)[None, :] * (1.0 + BRIDGE_SIGMA_FACTOR * got_j.bridged[:, None])
-    w = np.where(got_j.ok[:, None], 1.0 / sigma, 0.0)
-    health.metrics["fused_accel_rows"] = float(np.sum(got_j.ok))
-    return {"meas": got_j.jerk, "w": w}
+    got = accel_differences(chain, t_rec, acc, inp.times, offset_s, stencil)
+    sigma = np.asarray(sigma_m)[None, :] * (1.0 + BRIDGE_SIGMA_FACTOR * got.bridged[:, None])
+    w = np.where(got.ok[:, None], 1.0 / sigma, 0.0)
+    health.metrics["fused_accel_rows"] = float(np.sum(got.ok))
+    return {"meas": got.value, "w": w}

@@ -263,13 +263,21 @@ class Sigmas:
     #: that stays within millimetres (:mod:`.scan_errors`: the steps' errors as
     #: differences of per-frame offsets; 1: independent steps).
     rail_motion_drift_share: float = 0.25
-    #: The INS's accelerometers (:mod:`.accelerometer`): the third differences of the
+    #: The INS's accelerometers (:mod:`.accelerometer`): the second differences of the
     #: positions they see, sigma (along, lateral, vertical, m) per stencil: a
     #: tactical-grade accelerometer's velocity noise over 0.1 s is a few tenths of a
-    #: millimetre a second, a hundredth of these; they take the lever arm's share and
-    #: the interpolation to the lidar times. The option ``fused_accel: false`` turns it off.
+    #: millimetre a second, a hundredth of these; they take the lever arm's share (the
+    #: body's rotation sway at the INS's offset) and the interpolation to the lidar
+    #: times. The option ``fused_accel: false`` turns it off.
     accel: bool = True
-    accel_jerk: tuple[float, float, float] = (0.0005, 0.0003, 0.0003)
+    accel_diff: tuple[float, float, float] = (0.0005, 0.0002, 0.0002)
+    #: Their bias (m/s^2, base axes), estimated with the poses, linear between knots
+    #: ``accel_bias_knot_s`` apart: the accelerometers' own residual bias and the gravity
+    #: the INS's attitude error leaves in (0.15 deg: 2.6 mg). Prior on its size (3 mg, a
+    #: tactical-grade IMU's bias with that gravity) and on its change between knots.
+    accel_bias: float = 0.03
+    accel_bias_step: float = 0.01
+    accel_bias_knot_s: float = 2.0
 
 
 _ONES = np.ones(1)
@@ -337,6 +345,12 @@ class Problem:
     ins_white: F64 | None = None
     diff2: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     diff3: F64 = field(default_factory=lambda: np.zeros((0, 4)))
+    #: Accelerometer bias knots (3 parameters each, after the gyro bias; 0 without the
+    #: accelerometer block) and, per second-difference row, its left knot and the right
+    #: knot's weight at the row's middle time
+    n_acc_knots: int = 0
+    acc_knot_i: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    acc_knot_a: F64 = field(default_factory=lambda: np.zeros(0))
 
     def s(self, block: str) -> F64:
         """The variance factor(s) of ``block`` (ones until estimated)."""
@@ -438,8 +452,14 @@ def _frames_sharing(s: F64, length_m: float) -> F64:
     return np.maximum(hi - lo, 1).astype(np.float64)
 
 
-def _n_params(n: int, n_knots: int) -> int:
-    """Length of the parameter vector: poses, misalignment, INS bias knots, gyro bias."""
+def _n_params(n: int, n_knots: int, n_acc_knots: int = 0) -> int:
+    """Length of the parameter vector: poses, misalignment, INS bias knots, gyro bias,
+    accelerometer bias knots."""
+    return 6 * n + 7 + 6 * n_knots + 3 + 3 * n_acc_knots
+
+
+def _acc_bias_col(n: int, n_knots: int) -> int:
+    """First column of the accelerometers' bias knots (3 each: m/s^2, base axes)."""
     return 6 * n + 7 + 6 * n_knots + 3
 
 
@@ -510,6 +530,10 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
             g = _gyro_residuals(x, pb, R)
             i0 = _block_offsets(pb)["gyro"]
             r[i0 : i0 + len(g)] = g
+        if pb.accel is not None:
+            a = _accel_residuals(x, pb, R, p).ravel()
+            i0 = _block_offsets(pb)["accel"]
+            r[i0 : i0 + len(a)] = a
         return r
     R, p, _, _, _ = _unpack(x, pb)
     sig = pb.sig
@@ -553,7 +577,7 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
     if pb.nh is not None:
         out.append(_rail_motion_residuals(pb, R, p))
     if pb.accel is not None:
-        out.append(_accel_residuals(pb, R, p).ravel())
+        out.append(_accel_residuals(x, pb, R, p).ravel())
     # smoothness
     if pb.n >= 3:
         c = pb.diff2
@@ -618,6 +642,10 @@ def _prior_blocks(x: F64, pb: Problem) -> F64:
     out.append(np.array([lat / sig.latency]))
     i0 = _gyro_bias_col(pb.n, pb.n_knots)
     out.append(x[i0 : i0 + 3] / sig.gyro_bias)
+    if pb.n_acc_knots:
+        acc = _acc_bias_knots_of(x, pb)
+        out.append((acc / sig.accel_bias).ravel())
+        out.append((np.diff(acc, axis=0) / sig.accel_bias_step).ravel())
     knots = _bias_knots_of(x, pb)
     out.append((knots / pb.bias_sigma).ravel())
     out.append((np.diff(knots, axis=0) / pb.bias_step_sigma).ravel())
@@ -637,6 +665,7 @@ def _cached_sparsity(pb: Problem) -> csc_matrix:
         pb.gyro is None,
         pb.nh is None,
         pb.accel is None,
+        pb.n_acc_knots,
     )
     if pb.structure is None or pb.structure[0] != key:
         pb.structure = (key, sparsity(pb))
@@ -646,7 +675,7 @@ def _cached_sparsity(pb: Problem) -> csc_matrix:
 def sparsity(pb: Problem) -> csc_matrix:
     """Jacobian sparsity pattern matching :func:`residuals`' row order."""
     n = pb.n
-    m_cols = _n_params(n, pb.n_knots)
+    m_cols = _n_params(n, pb.n_knots, pb.n_acc_knots)
     rows: list[tuple[int, list[int]]] = []
     mis = list(range(6 * n, 6 * n + 7))
 
@@ -697,7 +726,12 @@ def sparsity(pb: Problem) -> csc_matrix:
             for _ in range(3):
                 rows.append((r, frame_cols(int(k)) + frame_cols(int(j))))
                 r += 1
-    gyro_bias = list(range(_gyro_bias_col(n, pb.n_knots), m_cols))
+    gyro_bias = list(range(_gyro_bias_col(n, pb.n_knots), _acc_bias_col(n, pb.n_knots)))
+    a0 = _acc_bias_col(n, pb.n_knots)
+
+    def acc_cols(j: int) -> list[int]:
+        return list(range(a0 + 3 * j, a0 + 3 * j + 3))
+
     if pb.gyro is not None:
         for k in range(n - 1):
             for _ in range(3):
@@ -708,8 +742,10 @@ def sparsity(pb: Problem) -> csc_matrix:
             rows.append((r, frame_cols(k) + frame_cols(k + 1)))
             r += 1
     if pb.accel is not None:
-        for k in range(n - 3):
-            cols = [c for d in range(4) for c in frame_cols(k + d)]
+        for k in range(n - 2):
+            j = int(pb.acc_knot_i[k])
+            cols = [c for d in range(3) for c in frame_cols(k + d)] + acc_cols(j)
+            cols += acc_cols(j + 1) if j + 1 < pb.n_acc_knots else []
             for _ in range(3):
                 rows.append((r, cols))
                 r += 1
@@ -731,6 +767,13 @@ def sparsity(pb: Problem) -> csc_matrix:
     for c in gyro_bias:
         rows.append((r, [c]))
         r += 1
+    for c in range(a0, a0 + 3 * pb.n_acc_knots):  # accelerometer bias size
+        rows.append((r, [c]))
+        r += 1
+    for j in range(pb.n_acc_knots - 1):  # its change between knots
+        for c in range(3):
+            rows.append((r, [acc_cols(j)[c], acc_cols(j + 1)[c]]))
+            r += 1
     for j in range(pb.n_knots):  # bias size
         for c in knot_cols(j):
             rows.append((r, [c]))
@@ -1017,6 +1060,9 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         gyro=gyro,
         nh=_rail_motion(inp, n, sig),
         accel=accel,
+        n_acc_knots=0 if accel is None else accel["n_knots"],
+        acc_knot_i=np.zeros(0, dtype=np.int64) if accel is None else accel["knot_i"],
+        acc_knot_a=np.zeros(0) if accel is None else accel["knot_a"],
         zupt=zupt,
         diff2=difference_weights(np.asarray(inp.times, dtype=np.float64), 2),
         diff3=difference_weights(np.asarray(inp.times, dtype=np.float64), 3),
@@ -1069,23 +1115,48 @@ def _accel_steps(
     """The accelerometer block (:mod:`.accelerometer`) on the gyros' chain and clock
     offset: meas and w (n-3, 3); None without gyro steps, records, or when switched off."""
     n = len(inp.frames)
-    if gyro is None or n < 4 or not (sig.accel and inp.options.get("fused_accel", True)):
+    if gyro is None or n < 3 or not (sig.accel and inp.options.get("fused_accel", True)):
         return None
     steps = gyro["steps"]
-    stencil = difference_weights(np.asarray(inp.times, dtype=np.float64), 3)
-    return accel_block(
-        inp, steps.chain, steps.offset_s, steps.imu_rate_hz, stencil, sig.accel_jerk, health
+    times = np.asarray(inp.times, dtype=np.float64)
+    got = accel_block(
+        inp,
+        steps.chain,
+        steps.offset_s,
+        steps.imu_rate_hz,
+        difference_weights(times, 2),
+        sig.accel_diff,
+        health,
     )
+    if got is None:
+        return None
+    # a constant acceleration b adds b h^2 to each row (difference_weights' scale)
+    dt = np.diff(times)
+    h = float(np.median(dt)) if len(dt) and np.median(dt) > 0 else 1.0
+    knot_i, knot_a, n_acc = _bias_knots(times, np.arange(1, n - 1), sig.accel_bias_knot_s)
+    return {**got, "h2": h * h, "knot_i": knot_i, "knot_a": knot_a, "n_knots": n_acc}
 
 
-def _accel_residuals(pb: Problem, R: F64, p: F64) -> F64:
-    """(n-3, 3) normalised residuals of the accelerometer block: the positions' third
-    differences (base axes of each stencil's second frame) against the accelerometers'."""
+def _acc_bias_knots_of(x: F64, pb: Problem) -> F64:
+    """(n_acc_knots, 3) the accelerometers' bias knots (m/s^2, base axes)."""
+    i0 = _acc_bias_col(pb.n, pb.n_knots)
+    return x[i0 : i0 + 3 * pb.n_acc_knots].reshape(pb.n_acc_knots, 3)
+
+
+def _accel_residuals(x: F64, pb: Problem, R: F64, p: F64) -> F64:
+    """(n-2, 3) normalised residuals of the accelerometer block: the positions' second
+    differences (base axes of each stencil's middle frame) against the accelerometers'
+    less their bias at the middle frame (the accelerometers measure the base's
+    acceleration plus the bias)."""
     assert pb.accel is not None
-    c = pb.diff3
-    j_world = c[:, :1] * p[:-3] + c[:, 1:2] * p[1:-2] + c[:, 2:3] * p[2:-1] + c[:, 3:] * p[3:]
-    j_base = np.einsum("nji,nj->ni", R[1:-2], j_world)
-    return (j_base - pb.accel["meas"]) * pb.accel["w"] / pb.s("accel")
+    c = pb.diff2
+    a_world = c[:, :1] * p[:-2] + c[:, 1:2] * p[1:-1] + c[:, 2:] * p[2:]
+    a_base = np.einsum("nji,nj->ni", R[1:-1], a_world)
+    knots = _acc_bias_knots_of(x, pb)
+    i, w = pb.acc_knot_i, pb.acc_knot_a[:, None]
+    b = (1.0 - w) * knots[i] + w * knots[np.minimum(i + 1, pb.n_acc_knots - 1)]
+    meas = pb.accel["meas"] - b * pb.accel["h2"]
+    return (a_base - meas) * pb.accel["w"] / pb.s("accel")
 
 
 def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
@@ -1611,14 +1682,18 @@ def _frame_period(pb: Problem) -> int:
     return period
 
 
-def _column_groups(n: int, n_knots: int, period: int = 3) -> list[NDArray[np.int64]]:
+def _column_groups(
+    n: int, n_knots: int, period: int = 3, n_acc_knots: int = 0
+) -> list[NDArray[np.int64]]:
     """Columns that share no residual row (finite differences in one evaluation each).
 
     A residual row touches frames that are never a multiple of ``period`` apart
     (:func:`_frame_period`), the misalignment and two consecutive bias knots, so frame
     columns with the same (frame mod period, component) go together, as do knot columns
     with the same (knot mod 3, component); the 7 misalignment columns each stand alone,
-    the first three each with one of the gyro bias' (which only gyro rows touch).
+    the first three each with one of the gyro bias' (which only gyro rows touch). The
+    accelerometer bias knots (only accelerometer rows touch them) join the INS bias
+    knots' groups of the same phase.
     """
     groups = []
     for phase in range(period):
@@ -1628,11 +1703,14 @@ def _column_groups(n: int, n_knots: int, period: int = 3) -> list[NDArray[np.int
                 groups.append(6 * frames + comp)
     gb = _gyro_bias_col(n, n_knots)
     groups.extend(np.array([6 * n + j] + ([gb + j] if j < 3 else [])) for j in range(7))
+    a0 = _acc_bias_col(n, n_knots)
     for phase in range(3):
         for comp in range(6):
             knots = np.arange(phase, n_knots, 3)
-            if len(knots):
-                groups.append(6 * n + 7 + 6 * knots + comp)
+            acc = a0 + 3 * np.arange(phase, n_acc_knots, 3) + comp if comp < 3 else []
+            cols = np.concatenate([6 * n + 7 + 6 * knots + comp, acc]).astype(np.int64)
+            if len(cols):
+                groups.append(cols)
     return groups
 
 
@@ -1716,9 +1794,9 @@ def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
     The problem is nearly linear (small rotation corrections), so a few iterations converge;
     a small Levenberg damping keeps the unobservable directions at their priors.
     """
-    x = np.zeros(_n_params(pb.n, pb.n_knots)) if x0 is None else x0.copy()
+    x = np.zeros(_n_params(pb.n, pb.n_knots, pb.n_acc_knots)) if x0 is None else x0.copy()
     S = _cached_sparsity(pb)
-    groups = _column_groups(pb.n, pb.n_knots, _frame_period(pb))
+    groups = _column_groups(pb.n, pb.n_knots, _frame_period(pb), pb.n_acc_knots)
     c = pb.sig.huber
     J, step, fresh = None, np.inf, False
     for it in range(max_iter + 1):
@@ -1805,7 +1883,7 @@ def _block_sizes(pb: Problem) -> list[tuple[str, int, int]]:
     if pb.nh is not None:
         sizes.append(("nh", n - 1, 1))
     if pb.accel is not None:
-        sizes.append(("accel", n - 3, 3))
+        sizes.append(("accel", n - 2, 3))
     return sizes
 
 
@@ -1821,7 +1899,7 @@ def redundancy(
     and the full diagonal was most of a 100-frame solve's time."""
     r = residuals(x, pb)
     S = _cached_sparsity(pb)
-    J = jacobian(x, r, pb, S, _column_groups(pb.n, pb.n_knots, _frame_period(pb)))
+    J = jacobian(x, r, pb, S, _column_groups(pb.n, pb.n_knots, _frame_period(pb), pb.n_acc_knots))
     a = np.abs(r)
     c = pb.sig.huber
     w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
@@ -2085,7 +2163,7 @@ def information(pb: Problem, x: F64) -> PoseInformation:
     scan error columns follow the problem's own, marginalised with them."""
     r = residuals(x, pb)
     S = _cached_sparsity(pb)
-    J = jacobian(x, r, pb, S, _column_groups(pb.n, pb.n_knots, _frame_period(pb)))
+    J = jacobian(x, r, pb, S, _column_groups(pb.n, pb.n_knots, _frame_period(pb), pb.n_acc_knots))
     a = np.abs(r)
     c = pb.sig.huber
     w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
@@ -2171,6 +2249,10 @@ class FusedStrategy:
             i0 = _gyro_bias_col(pb.n, pb.n_knots)
             for axis, b in zip(("roll", "pitch", "heading"), x[i0 : i0 + 3], strict=True):
                 health.metrics[f"fused_gyro_bias_{axis}_deg_h"] = float(np.degrees(b) * 3600.0)
+        if pb.n_acc_knots:
+            acc = np.mean(_acc_bias_knots_of(x, pb), axis=0) / 9.80665e-3
+            for axis, b in zip(("along", "lateral", "vertical"), acc, strict=True):
+                health.metrics[f"fused_accel_bias_{axis}_mg"] = float(b)
         notes = self._observability(inp, pb, health)
         info = information(pb, x)
         health.metrics["fused_variance_factor_global"] = info.scale
