@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -48,3 +50,19 @@ def true_ego_input(folder: Path, **options: object) -> LocalizationInput:
     entries = json.loads((folder / "ground_truth" / "centrelines.json").read_text())
     ego = next(Centreline.from_json(e) for e in entries if e.get("ego"))
     return make_input(Sequence.open(folder), ego=ego, options=dict(options))
+
+
+def with_corrimu_added(src: Path, dst: Path, column: str, per_sample: float) -> Path:
+    """A copy of the sequence at ``src`` whose CORRIMU ``column`` (per IMU sample) carries
+    ``per_sample`` more: a known gyro or accelerometer bias."""
+    shutil.copytree(src, dst)
+    for f in sorted((dst / "novatel_oem7_corrimu").glob("*.csv")):
+        with f.open() as fh:
+            rows = list(csv.DictReader(fh))
+        for r in rows:
+            r[column] = repr(float(r[column]) + per_sample)
+        with f.open("w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]), lineterminator="\n")
+            w.writeheader()
+            w.writerows(rows)
+    return dst

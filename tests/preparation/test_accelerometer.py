@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from geometry.poses import R_INS_BASE_NOMINAL, PoseTrack
-from tests.synth_fixtures import true_ego_input
+from tests.synth_fixtures import true_ego_input, with_corrimu_added
 from worker.preparation.localization.accelerometer import BRIDGE_SIGMA_FACTOR, accel_differences
 from worker.preparation.localization.base import Health
 from worker.preparation.localization.fused import FusedStrategy, build_problem, difference_weights
@@ -224,20 +224,7 @@ def test_a_sequence_without_imu_records_runs_without_accelerometers(
 def _with_accel_bias(src: Path, dst: Path, column: str, mg: float) -> Path:
     """A copy of the sequence at ``src`` whose CORRIMU ``column`` (m/s per IMU sample at
     the synthetic 100 Hz) carries ``mg`` more."""
-    import csv
-
-    shutil.copytree(src, dst)
-    add = 9.80665e-3 * mg / 100.0
-    for f in sorted((dst / "novatel_oem7_corrimu").glob("*.csv")):
-        with f.open() as fh:
-            rows = list(csv.DictReader(fh))
-        for r in rows:
-            r[column] = repr(float(r[column]) + add)
-        with f.open("w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]), lineterminator="\n")
-            w.writeheader()
-            w.writerows(rows)
-    return dst
+    return with_corrimu_added(src, dst, column, 9.80665e-3 * mg / 100.0)
 
 
 @pytest.mark.slow

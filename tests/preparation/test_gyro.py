@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from geometry.poses import R_INS_BASE_NOMINAL, PoseTrack
-from tests.synth_fixtures import true_ego_input
+from tests.synth_fixtures import true_ego_input, with_corrimu_added
 from worker.preparation.localization.base import Health
 from worker.preparation.localization.fused import FusedStrategy
 from worker.preparation.localization.gyro import (
@@ -287,20 +287,7 @@ def test_fused_with_gyros_beats_without_by_the_design_margin(
 def _with_gyro_bias(src: Path, dst: Path, column: str, deg_per_h: float) -> Path:
     """A copy of the sequence at ``src`` whose CORRIMU ``column`` (rad per IMU sample at
     the synthetic 100 Hz) carries ``deg_per_h`` more."""
-    import csv
-
-    shutil.copytree(src, dst)
-    add = float(np.radians(deg_per_h) / 3600.0 / 100.0)
-    for f in sorted((dst / "novatel_oem7_corrimu").glob("*.csv")):
-        with f.open() as fh:
-            rows = list(csv.DictReader(fh))
-        for r in rows:
-            r[column] = repr(float(r[column]) + add)
-        with f.open("w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]), lineterminator="\n")
-            w.writeheader()
-            w.writerows(rows)
-    return dst
+    return with_corrimu_added(src, dst, column, float(np.radians(deg_per_h) / 3600.0 / 100.0))
 
 
 @pytest.mark.slow
