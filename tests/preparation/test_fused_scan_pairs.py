@@ -57,6 +57,20 @@ def test_scan_pairs_hold_the_lateral_motion_over_ten_frames(sparse: Path) -> Non
     assert e["pairs"] < 0.6 * e["without"], e
 
 
+@pytest.mark.xfail(
+    reason="measured miss: with the accelerometers on, 2.16 -> 1.64 mm (0.76x, bound "
+    "0.6x): the accelerometers' second differences hold most of this lateral motion",
+    strict=False,
+)
+def test_scan_pairs_beat_fused_without_them_by_the_design_margin(sparse: Path) -> None:
+    inp = true_ego_input(sparse)
+    without = FusedStrategy(Sigmas(scan_pairs=False)).run(inp)
+    with_pairs = FusedStrategy().run(true_ego_input(sparse))
+    e0 = _lateral_error_mm(without.track, sparse, 10)
+    e1 = _lateral_error_mm(with_pairs.track, sparse, 10)
+    assert e1 < 0.6 * e0, (e0, e1)
+
+
 def test_first_frames_registered_to_a_mature_map(sparse: Path) -> None:
     # KISS-ICP registers its first frames against a map of one to three scans; on this
     # sparse sequence frame 0's pose in frame 3's was 157 mdeg of heading and 115 mm off

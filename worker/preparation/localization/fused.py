@@ -1113,7 +1113,8 @@ def _accel_steps(
     inp: LocalizationInput, gyro: dict | None, health: Health, sig: Sigmas
 ) -> dict | None:
     """The accelerometer block (:mod:`.accelerometer`) on the gyros' chain and clock
-    offset: meas and w (n-3, 3); None without gyro steps, records, or when switched off."""
+    offset: meas and w (n-2, 3), h2 (a constant acceleration's share of a row) and the
+    bias knots per row; None without gyro steps, records, or when switched off."""
     n = len(inp.frames)
     if gyro is None or n < 3 or not (sig.accel and inp.options.get("fused_accel", True)):
         return None
