@@ -24,6 +24,8 @@ Residuals, each divided by its standard deviation:
 - ground pairs (:mod:`~worker.preparation.localization.ground_pairs`): the height, roll and
   pitch of frame k + lag in frame k (lags 1 and 10) from the ground both frames see. KISS-ICP
   runs without the ground and drifts in pitch; the ground fixes exactly those three;
+- the INS velocity: each step's displacement along the track (the INS's forward axis) and
+  sideways (its world displacement on the solution's lateral axis);
 - odometry pairs: frame k + lag's position in frame k (lags 10 and 30), along the track from
   KISS-ICP and across it from the fine scan-to-scan registration where that is sharper
   (:mod:`~worker.preparation.localization.scan_pairs`);
@@ -312,7 +314,8 @@ class Problem:
     R_bias: F64 = field(default_factory=lambda: np.eye(3))
     ground: dict | None = None  # ground pairs: k, j (P,), T_k_j (P, 4, 4), w (P, 3)
     #: INS velocity steps: k (S,) earlier frames, d (S,) the step's displacement along
-    #: the earlier frame's forward axis from the INS velocity, w (S,) 1/sigma
+    #: the earlier frame's forward axis from the INS velocity, dp (S, 3) its world
+    #: displacement, w (S,) 1/sigma
     #: (:func:`_velocity_steps`)
     vel: dict | None = None
     #: Odometry pairs: k, j (Q,), T_k_j (Q, 4, 4), w (Q, 2): 1/sigma of frame j's
@@ -565,11 +568,13 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
         E_r = _log_rotation(MRt @ np.swapaxes(Rk, 1, 2) @ Rj)
         gr = np.column_stack([E_t[:, 2], E_r[:, 0], E_r[:, 1]]) * g["w"] / pb.s("ground")
         out.append(gr.ravel())
-    # INS velocity: the displacement over each step
+    # INS velocity: the displacement over each step, along the track and sideways
     if pb.vel is not None:
         kv = pb.vel["k"]
         along = np.einsum("ni,ni->n", R[kv][:, :, 0], p[kv + 1] - p[kv])
-        out.append((along - pb.vel["d"]) * pb.vel["w"] / pb.s("ins_v"))
+        lat = np.einsum("ni,ni->n", R[kv][:, :, 1], p[kv + 1] - p[kv] - pb.vel["dp"])
+        both = np.column_stack([along - pb.vel["d"], lat]) * pb.vel["w"][:, None]
+        out.append((both / pb.s("ins_v")).ravel())
     if pb.odo_pairs is not None:
         out.append(_odometry_pair_residuals(pb, R, p).ravel())
     if pb.gyro is not None:
@@ -719,8 +724,9 @@ def sparsity(pb: Problem) -> csc_matrix:
                 r += 1
     if pb.vel is not None:
         for k in pb.vel["k"]:
-            rows.append((r, frame_cols(int(k)) + frame_cols(int(k) + 1)))
-            r += 1
+            for _ in range(2):
+                rows.append((r, frame_cols(int(k)) + frame_cols(int(k) + 1)))
+                r += 1
     if pb.odo_pairs is not None:
         for k, j in zip(pb.odo_pairs["k"], pb.odo_pairs["j"], strict=True):
             for _ in range(3):
@@ -1274,16 +1280,23 @@ def _ins_attitude_white(
 def _velocity_steps(
     inp: LocalizationInput, ins: InsFrames, health: Health, sig: Sigmas
 ) -> dict | None:
-    """The INS velocity as a measurement of each step's displacement along the track.
+    """The INS velocity as a measurement of each step's displacement, along the track and
+    sideways.
 
     The velocity is what an INS measures best (cm/s, Doppler-aided, immune to GNSS jumps):
     over a 0.1 s step it fixes the along-track displacement to millimetres, where lidar
-    odometry degenerates on long straights and lags on slow trains. Only its forward
-    component is used (signed: a reversing train): its direction, at a slow train's speed,
-    is off by tenths of a degree and would turn the poses. Sigma: the
+    odometry degenerates on long straights and lags on slow trains. Along the track: its
+    component on the INS's forward axis (signed: a reversing train). Sideways: the world
+    displacement it gives, projected on the solution's own lateral axis, so the INS's
+    heading does not enter (its direction at a slow train's speed is off by tenths of a
+    degree); its error is the velocity's own, millimetres a second. Over a short run the
+    body's sway has a mean lateral velocity that the rail motion's steps take as zero (a
+    6 mm sway at 0.7 Hz moves at up to 26 mm/s); the INS velocity sees it. Sigma: the
     INSSTDEV velocity stdev the INS reports (median per axis, within ``ins_v_bounds``),
     else the bounds' upper end; the variance factors then correct it from the residuals.
     Steps whose frames lack an INS record of their own are left out.
+    Returns k (S,), d (S,) the along-track displacement, dp (S, 3) the world displacement
+    and w (S,) 1 / sigma.
     """
     if not sig.use_ins_velocity:
         return None
@@ -1308,8 +1321,9 @@ def _velocity_steps(
         log.debug("no INS velocity stdev (%s): sigma %.3f m/s", exc, sigma_v)
     health.metrics["fused_ins_velocity_sigma_mps"] = sigma_v
     forward = ins.T_world_base[k, :3, 0]
-    d = np.einsum("ni,ni->n", forward, 0.5 * (v[k] + v[k + 1])) * dt[k]
-    return {"k": k, "d": d, "w": 1.0 / (sigma_v * dt[k])}
+    dp = 0.5 * (v[k] + v[k + 1]) * dt[k][:, None]
+    d = np.einsum("ni,ni->n", forward, dp)
+    return {"k": k, "d": d, "dp": dp, "w": 1.0 / (sigma_v * dt[k])}
 
 
 def full_weight_steps(
@@ -1876,7 +1890,7 @@ def _block_sizes(pb: Problem) -> list[tuple[str, int, int]]:
     if pb.ground is not None:
         sizes.append(("ground", len(pb.ground["k"]), 3))
     if pb.vel is not None:
-        sizes.append(("ins_v", len(pb.vel["k"]), 1))
+        sizes.append(("ins_v", len(pb.vel["k"]), 2))
     if pb.odo_pairs is not None:
         sizes.append(("odo_pair", len(pb.odo_pairs["k"]), 3))
     if pb.gyro is not None:

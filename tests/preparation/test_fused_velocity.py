@@ -1,0 +1,74 @@
+"""fused's INS velocity steps: each step's displacement along the track and sideways. The
+true poses of a synthetic sequence meet the sideways component within its sigma, and a
+lateral drift of a centimetre a second (what the rail motion's steps cannot tell from the
+body's sway over a short run) puts every step two sigmas further off, sideways only."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from geometry.geodesy import WorldFrame
+from geometry.poses import PoseTrack, reexpress
+from tests.synth_fixtures import true_ego_input
+from worker.preparation.localization.base import Health
+from worker.preparation.localization.fused import (
+    Sigmas,
+    _n_params,
+    build_problem,
+    measurement_blocks,
+)
+
+
+@pytest.fixture(scope="module")
+def short_curve(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from worker.synth.generator import SynthConfig, generate
+
+    cfg = SynthConfig(
+        scene="tight_curve", frames=12, scale=0.05, seed=1, lidar_density=0.3,
+        ins_profile="good", cameras=(),
+    )  # fmt: skip
+    return generate(tmp_path_factory.mktemp("curve") / "seq", cfg).folder
+
+
+def _velocity_residuals(folder: Path, lateral_drift_mps: float) -> np.ndarray:
+    """(S, 2) the normalised INS velocity residuals (along, sideways) at the true poses,
+    each frame moved sideways by ``lateral_drift_mps`` times its time (its own left axis)."""
+    inp = true_ego_input(folder)
+    pb = build_problem(inp, Health(), Sigmas())
+    assert pb.vel is not None
+    true_world = WorldFrame.from_json(json.loads((folder / "ground_truth/world.json").read_text()))
+    dense = PoseTrack.from_csv(folder / "ground_truth/poses_dense.csv")
+    truth = reexpress(dense, true_world, inp.world)
+    T = truth.interpolate(inp.times)
+    t = np.asarray(inp.times) - inp.times[0]
+    p = T[:, :3, 3] + lateral_drift_mps * t[:, None] * T[:, :3, 1]
+    n = pb.n
+    x = np.zeros(_n_params(n, pb.n_knots, pb.n_acc_knots))
+    xp = x[: 6 * n].reshape(n, 6)
+    xp[:, :3] = Rotation.from_matrix(T[:, :3, :3] @ np.swapaxes(pb.R0, 1, 2)).as_rotvec()
+    xp[:, 3:] = p - pb.p0
+    return measurement_blocks(pb, x)["ins_v"]
+
+
+def test_true_poses_meet_the_sideways_velocity_within_its_sigma(short_curve: Path) -> None:
+    r = _velocity_residuals(short_curve, 0.0)
+    # the good profile's velocity noise: 5 mm/s per record, the sigma 5.1 mm/s
+    assert np.sqrt(np.mean(r[:, 1] ** 2)) < 1.5, r
+    assert np.max(np.abs(r[:, 1])) < 3.5, r
+
+
+def test_a_lateral_drift_of_a_centimetre_a_second_is_seen_sideways_only(
+    short_curve: Path,
+) -> None:
+    still = _velocity_residuals(short_curve, 0.0)
+    drift = _velocity_residuals(short_curve, 0.01)
+    # 10 mm/s against a 5 mm/s sigma: every step two sigmas further, the same sign
+    shift = drift[:, 1] - still[:, 1]
+    assert np.allclose(shift, shift[0], atol=0.2) and abs(abs(shift[0]) - 2.0) < 0.2, shift
+    # along the track nothing moved
+    assert np.max(np.abs(drift[:, 0] - still[:, 0])) < 0.05
