@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from geometry.geodesy import WorldFrame
 from geometry.poses import PoseTrack, reexpress
-from tests.synth_fixtures import true_ego_input
+from tests.synth_fixtures import synth_sequence, true_ego_input
 from worker.preparation.localization.base import Health
 from worker.preparation.localization.fused import (
     Sigmas,
@@ -26,13 +26,10 @@ from worker.preparation.localization.fused import (
 
 @pytest.fixture(scope="module")
 def short_curve(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from worker.synth.generator import SynthConfig, generate
-
-    cfg = SynthConfig(
-        scene="tight_curve", frames=12, scale=0.05, seed=1, lidar_density=0.3,
-        ins_profile="good", cameras=(),
+    return synth_sequence(
+        tmp_path_factory.mktemp("curve"), "seq", scene="tight_curve", frames=12, scale=0.05,
+        seed=1, lidar_density=0.3, ins_profile="good", cameras=(),
     )  # fmt: skip
-    return generate(tmp_path_factory.mktemp("curve") / "seq", cfg).folder
 
 
 def _velocity_residuals(folder: Path, lateral_drift_mps: float) -> np.ndarray:
