@@ -260,6 +260,10 @@ class Sigmas:
     #: The option ``fused_rail_motion: false`` turns it off.
     rail_motion: bool = True
     rail_motion_lat: float = 0.003
+    #: The same vertically: frame k + 1's height in frame k is the chord of the pitch
+    #: between them (the body follows the track's grade), within this sigma per step (m,
+    #: the body's bounce on its suspension); 0 turns it off.
+    rail_motion_vert: float = 0.003
     #: Share of a rail-motion step's variance that adds up over steps in the solution's
     #: information: the rest is the body's sway, an offset from the rail-following path
     #: that stays within millimetres (:mod:`.scan_errors`: the steps' errors as
@@ -745,8 +749,9 @@ def sparsity(pb: Problem) -> csc_matrix:
                 r += 1
     if pb.nh is not None:
         for k in range(n - 1):
-            rows.append((r, frame_cols(k) + frame_cols(k + 1)))
-            r += 1
+            for _ in range(2):
+                rows.append((r, frame_cols(k) + frame_cols(k + 1)))
+                r += 1
     if pb.accel is not None:
         for k in range(n - 2):
             j = int(pb.acc_knot_i[k])
@@ -1176,17 +1181,22 @@ def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
     ran within their goals with d = 0)."""
     if n < 2 or not (sig.rail_motion and inp.options.get("fused_rail_motion", True)):
         return None
-    return {"w": np.full(n - 1, 1.0 / sig.rail_motion_lat), "d": 0.0}
+    w_vert = 1.0 / sig.rail_motion_vert if sig.rail_motion_vert > 0 else 0.0
+    w = np.column_stack([np.full(n - 1, 1.0 / sig.rail_motion_lat), np.full(n - 1, w_vert)])
+    return {"w": w, "d": 0.0}
 
 
 def _rail_motion_residuals(pb: Problem, R: F64, p: F64) -> F64:
-    """(n-1,) normalised residuals of the rail motion: frame k + 1's lateral position in
-    frame k against the turn between them times (half the step + ``d``)."""
+    """((n-1) 2,) normalised residuals of the rail motion: frame k + 1's lateral position
+    in frame k against the turn between them times (half the step + ``d``), and its height
+    against the pitch between them times half the step (a pitch about +y, the left axis,
+    lowers the nose)."""
     assert pb.nh is not None
     B = np.einsum("nji,nj->ni", R[:-1], p[1:] - p[:-1])
-    theta = _log_rotation(np.swapaxes(R[:-1], 1, 2) @ R[1:])[:, 2]
-    pred = theta * (0.5 * B[:, 0] + pb.nh["d"])
-    return (B[:, 1] - pred) * pb.nh["w"] / pb.s("nh")
+    rot = _log_rotation(np.swapaxes(R[:-1], 1, 2) @ R[1:])
+    lat = B[:, 1] - rot[:, 2] * (0.5 * B[:, 0] + pb.nh["d"])
+    vert = B[:, 2] + rot[:, 1] * 0.5 * B[:, 0]
+    return (np.column_stack([lat, vert]) * pb.nh["w"] / pb.s("nh")).ravel()
 
 
 def _track_axes(R_world_base: F64) -> F64:
@@ -1896,7 +1906,7 @@ def _block_sizes(pb: Problem) -> list[tuple[str, int, int]]:
     if pb.gyro is not None:
         sizes.append(("gyro", n - 1, 3))
     if pb.nh is not None:
-        sizes.append(("nh", n - 1, 1))
+        sizes.append(("nh", n - 1, 2))
     if pb.accel is not None:
         sizes.append(("accel", n - 2, 3))
     return sizes
@@ -2192,10 +2202,10 @@ def information(pb: Problem, x: F64) -> PoseInformation:
     J, w = _with_scan_errors(pb, J, w)
     if pb.nh is not None and pb.sig.rail_motion_drift_share < 1.0:
         # the sway: each step's lateral error the difference of two frames' offsets
-        rows = _block_offsets(pb)["nh"] + np.arange(pb.n - 1)
+        rows = _block_offsets(pb)["nh"] + 2 * np.arange(pb.n - 1)[:, None] + np.arange(2)
         a = pb.nh["w"] / pb.s("nh")
         J, w = with_step_differences(
-            J, w, rows[:, None], np.broadcast_to(a, (pb.n - 1,))[:, None],
+            J, w, rows, np.broadcast_to(a, (pb.n - 1, 2)),
             np.ones(pb.n - 1, dtype=bool), pb.sig.rail_motion_drift_share,
         )  # fmt: skip
     A = (J.T.multiply(w[None, :]).tocsc() @ J).tocsc()
