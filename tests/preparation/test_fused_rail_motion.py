@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from geometry.poses import PoseTrack
 from tests.synth_fixtures import true_ego_input
@@ -79,3 +80,25 @@ def test_rail_motion_keeps_every_lateral_step_within_the_sway(short_switch: Path
     inp.options["fused_rail_motion"] = True
     err = _lateral_step_errors_mm(FusedStrategy().run(inp).track, short_switch, inp.times)
     assert np.max(np.abs(err)) < 3.0, err
+
+
+def test_a_grade_change_keeps_to_the_rails_vertically(short_switch: Path) -> None:
+    """A base climbing along a vertical curve of radius 2 km (10 m steps, its pitch the
+    track's tangent) meets the vertical rows exactly: each step rises by the chord of its
+    pitch change, 25 mm (with the chord's sign turned, 50 mm off against a 3 mm sigma).
+    One frame 6 mm too high shows in its two steps, by 2 sigmas each, with opposite signs."""
+    inp = true_ego_input(short_switch)
+    pb = build_problem(inp, Health(), Sigmas())
+    assert pb.nh is not None
+    n, rho, sigma = pb.n, 2000.0, Sigmas().rail_motion_vert
+    a = 10.0 * np.arange(n) / rho  # the arc's angle at each base
+    p = np.column_stack([rho * np.sin(a), np.zeros(n), rho * (1.0 - np.cos(a))])
+    # climbing: the nose up, a negative rotation about +y (the left axis)
+    R = np.stack([Rotation.from_rotvec([0.0, -ak, 0.0]).as_matrix() for ak in a])
+    vert = _rail_motion_residuals(pb, R, p).reshape(-1, 2)[:, 1]
+    assert np.max(np.abs(vert)) * sigma < 1e-4, vert
+    bumped = p.copy()
+    bumped[4, 2] += 0.006
+    bump = _rail_motion_residuals(pb, R, bumped).reshape(-1, 2)[:, 1]
+    assert abs(bump[3] - 2.0) < 0.05 and abs(bump[4] + 2.0) < 0.05, bump
+    assert np.max(np.abs(np.delete(bump, [3, 4]))) * sigma < 1e-4, bump
