@@ -102,6 +102,64 @@ def lidar_yaw_offset(
     return YawOffset(delta, float(se), int(np.sum(use)))
 
 
+def vertical_angles(T_k_j: F64) -> tuple[F64, F64]:
+    """Per pair the angle of climb in frame k plus half the relative pitch (rad), and the
+    vertical curvature (1/m) the relative pitch implies: :func:`non_holonomic_angles` in
+    the vertical plane (a pitch about +y, the left axis, lowers the nose). A body following
+    its rails has angle 0 on a constant grade; a cloud pitched against the base by ``p``
+    gives ``p``."""
+    x = T_k_j[:, 0, 3]
+    pitch = np.arctan2(-T_k_j[:, 2, 0], T_k_j[:, 0, 0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = T_k_j[:, 2, 3] / x + 0.5 * pitch
+        kappa = pitch / x
+    return a, kappa
+
+
+#: Pairs used for the pitch: at least this far apart along the track (m; the body's
+#: bounce of a few millimetres is then about a milliradian a pair) ...
+MIN_PITCH_DISTANCE_M = 5.0
+#: ... on a grade whose curvature, as the pair's relative pitch shows it, is below this
+#: (1/m): looser than the horizontal rule, since the body's pitching on its suspension
+#: (a few tenths of a milliradian between two frames) is in that relative pitch too.
+MAX_VERTICAL_CURVATURE = 1e-4
+
+
+def lidar_pitch_offset(
+    T_k_j: F64,
+    ok: NDArray[np.bool_],
+    lag: NDArray[np.int64],
+    *,
+    min_distance_m: float = MIN_PITCH_DISTANCE_M,
+    max_curvature: float = MAX_VERTICAL_CURVATURE,
+    min_pairs: int = MIN_PAIRS,
+) -> YawOffset | None:
+    """The cloud's pitch against the base (rad, positive nose down as a pitch about +y),
+    from relative poses measured in the cloud (the ground pairs' height and pitch), or
+    None: the vertical counterpart of :func:`lidar_yaw_offset`, on pairs of near-constant
+    grade. A cloud pitched by ``p`` puts the ground a distance ``x`` ahead ``p x`` off in
+    height; the same ground seen again from ``x`` closer is then ``p x`` higher or lower,
+    a climb of ``p`` per metre in every relative pose (0.8 mrad: 50 mm over 60 m)."""
+    a, kappa = vertical_angles(np.asarray(T_k_j, dtype=np.float64))
+    x = np.abs(T_k_j[:, 0, 3])
+    use = ok & (x >= min_distance_m) & (np.abs(kappa) <= max_curvature) & np.isfinite(a)
+    if int(np.sum(use)) < min_pairs:
+        return None
+    a_used = a[use]
+    p = float(np.median(a_used))
+    spread = 1.4826 * float(np.median(np.abs(a_used - p)))
+    lags = np.asarray(lag, dtype=np.float64)[use]
+    independent = max(1.0, float(np.sum(1.0 / np.maximum(lags, 1.0))))
+    return YawOffset(p, float(1.2533 * spread / np.sqrt(independent)), int(np.sum(use)))
+
+
+def tilt_lidar_poses(T: F64, pitch: float) -> F64:
+    """Relative poses (..., 4, 4) measured in a cloud pitched by ``pitch`` (rad, about the
+    base y axis) against the base, expressed in the base: ``R T R^T``, ``R = Ry(pitch)``."""
+    R = make_T(Rotation.from_rotvec([0.0, pitch, 0.0]).as_matrix(), np.zeros(3))
+    return R @ T @ R.T
+
+
 def turn_lidar_poses(T: F64, delta: float) -> F64:
     """Relative poses (..., 4, 4) measured in a cloud turned by ``delta`` (rad) about the base
     z axis, expressed in the base: ``R T R^T`` with ``R = Rz(-delta)``."""
