@@ -41,6 +41,14 @@ def test_design_has_every_level_of_every_factor(quick: bool) -> None:
         assert any(c.merge_error is False for c in cells)
 
 
+def test_a_seed_offset_gives_the_same_cells_on_fresh_seeds() -> None:
+    base, fresh = design(), design(seed_offset=10)
+    assert [c.seed + 10 for c in base] == [c.seed for c in fresh]
+    assert {c.seed for c in fresh}.isdisjoint(SEEDS)
+    strip = [(c.scene, c.frames, c.density, c.profile, c.motion) for c in base]
+    assert strip == [(c.scene, c.frames, c.density, c.profile, c.motion) for c in fresh]
+
+
 STILL = Cell("stationary", 10, 0.3, "osdar23", 0, "stationary")
 MOVING = Cell("fire_site", 12, 0.3, "good", 1)
 

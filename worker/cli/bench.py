@@ -16,7 +16,9 @@ from worker.cli.progress import progress_bar
 
 
 def _bench_matrix(args: argparse.Namespace) -> int:
-    bar = progress_bar(len(design(args.quick)), "robustness matrix")
+    if args.seed_offset < 0:
+        raise CliError(f"bench --seed-offset {args.seed_offset}: must be 0 or more")
+    bar = progress_bar(len(design(args.quick, args.seed_offset)), "robustness matrix")
     bar.unit = "cell"
 
     def progress(done: int, total: int, name: str) -> None:
@@ -26,7 +28,7 @@ def _bench_matrix(args: argparse.Namespace) -> int:
     try:
         result = run_and_report(
             args.workdir / "matrix", quick=args.quick, json_path=args.json,
-            markdown_path=args.markdown, progress=progress,
+            markdown_path=args.markdown, progress=progress, seed_offset=args.seed_offset,
         )  # fmt: skip
         bar.update(bar.total - bar.n)
     finally:

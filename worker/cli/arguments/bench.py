@@ -25,6 +25,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "goals (ok / MISS), heatmap PNG",
     )  # fmt: skip
     p.add_argument(
+        "--seed-offset", type=int, default=0, metavar="N",
+        help="with --matrix: every cell's seed shifted by N (sequences the method was not "
+        "developed on; default 0: the matrix's own seeds 0 and 1)",
+    )  # fmt: skip
+    p.add_argument(
         "--markdown", type=Path, default=None,
         help="write the figures as a markdown report (an existing report keeps its text above "
         "'## Figures'); with --report: from a saved JSON instead of a run",
