@@ -89,17 +89,34 @@ def lidar_yaw_offset(
     error counts one independent pair per lag of frames spanned.
     """
     a, kappa = non_holonomic_angles(np.asarray(T_k_j, dtype=np.float64))
+    return _median_angle(
+        a, kappa, T_k_j, ok, lag, min_distance_m, max_curvature, min_pairs
+    )  # fmt: skip
+
+
+def _median_angle(
+    a: F64,
+    kappa: F64,
+    T_k_j: F64,
+    ok: NDArray[np.bool_],
+    lag: NDArray[np.int64],
+    min_distance_m: float,
+    max_curvature: float,
+    min_pairs: int,
+) -> YawOffset | None:
+    """The median of the per-pair angles ``a`` (Q,) over the pairs far enough apart on
+    track of small enough curvature ``kappa`` (Q,); its standard error counts one
+    independent pair per lag of frames spanned. None with fewer than ``min_pairs``."""
     x = np.abs(T_k_j[:, 0, 3])
     use = ok & (x >= min_distance_m) & (np.abs(kappa) <= max_curvature) & np.isfinite(a)
     if int(np.sum(use)) < min_pairs:
         return None
     a_used = a[use]
-    delta = float(np.median(a_used))
-    spread = 1.4826 * float(np.median(np.abs(a_used - delta)))
+    angle = float(np.median(a_used))
+    spread = 1.4826 * float(np.median(np.abs(a_used - angle)))
     lags = np.asarray(lag, dtype=np.float64)[use]
     independent = max(1.0, float(np.sum(1.0 / np.maximum(lags, 1.0))))
-    se = 1.2533 * spread / np.sqrt(independent)
-    return YawOffset(delta, float(se), int(np.sum(use)))
+    return YawOffset(angle, float(1.2533 * spread / np.sqrt(independent)), int(np.sum(use)))
 
 
 def vertical_angles(T_k_j: F64) -> tuple[F64, F64]:
@@ -141,16 +158,9 @@ def lidar_pitch_offset(
     height; the same ground seen again from ``x`` closer is then ``p x`` higher or lower,
     a climb of ``p`` per metre in every relative pose (0.8 mrad: 50 mm over 60 m)."""
     a, kappa = vertical_angles(np.asarray(T_k_j, dtype=np.float64))
-    x = np.abs(T_k_j[:, 0, 3])
-    use = ok & (x >= min_distance_m) & (np.abs(kappa) <= max_curvature) & np.isfinite(a)
-    if int(np.sum(use)) < min_pairs:
-        return None
-    a_used = a[use]
-    p = float(np.median(a_used))
-    spread = 1.4826 * float(np.median(np.abs(a_used - p)))
-    lags = np.asarray(lag, dtype=np.float64)[use]
-    independent = max(1.0, float(np.sum(1.0 / np.maximum(lags, 1.0))))
-    return YawOffset(p, float(1.2533 * spread / np.sqrt(independent)), int(np.sum(use)))
+    return _median_angle(
+        a, kappa, T_k_j, ok, lag, min_distance_m, max_curvature, min_pairs
+    )  # fmt: skip
 
 
 def tilt_lidar_poses(T: F64, pitch: float) -> F64:
