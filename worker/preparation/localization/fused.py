@@ -1052,18 +1052,14 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         bias_sigma[:3] = 0.005 * DEG
     odo_pairs = _odometry_pairs(inp, w_t, w_r, zupt, degenerate, health, sig, T_first)
     accel = _accel_steps(inp, gyro, health, sig)
-    if odo_pairs is not None and odo_pairs["yaw_offset"] and n >= 2:
-        D_base = turn_lidar_poses(D, odo_pairs["yaw_offset"])
-        d_t, d_R = D_base[:, :3, 3].copy(), D_base[:, :3, :3].copy()
+    yaw = 0.0 if odo_pairs is None else odo_pairs["yaw_offset"]
     pitch = 0.0 if ground is None else ground["pitch_offset"]
-    if pitch and n >= 2:
-        # KISS-ICP's steps and pairs are in the same pitched cloud as the ground pairs
-        D_cloud = np.tile(np.eye(4), (n - 1, 1, 1))
-        D_cloud[:, :3, :3], D_cloud[:, :3, 3] = d_R, d_t
-        D_base = tilt_lidar_poses(D_cloud, pitch)
+    if (yaw or pitch) and n >= 2:
+        # KISS-ICP's steps (and pairs) are in the same turned and pitched cloud
+        D_base = tilt_lidar_poses(turn_lidar_poses(D, yaw), pitch)
         d_t, d_R = D_base[:, :3, 3].copy(), D_base[:, :3, :3].copy()
-        if odo_pairs is not None:
-            odo_pairs["T_k_j"] = tilt_lidar_poses(odo_pairs["T_k_j"], pitch)
+    if pitch and odo_pairs is not None:
+        odo_pairs["T_k_j"] = tilt_lidar_poses(odo_pairs["T_k_j"], pitch)
     return Problem(
         R0=R0,
         p0=p0,
