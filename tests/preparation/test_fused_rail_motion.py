@@ -102,3 +102,22 @@ def test_a_grade_change_keeps_to_the_rails_vertically(short_switch: Path) -> Non
     bump = _rail_motion_residuals(pb, R, bumped).reshape(-1, 2)[:, 1]
     assert abs(bump[3] - 2.0) < 0.05 and abs(bump[4] + 2.0) < 0.05, bump
     assert np.max(np.abs(np.delete(bump, [3, 4]))) * sigma < 1e-4, bump
+
+
+def test_a_significant_cloud_pitch_is_taken_out_of_every_lidar_step(
+    short_switch: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Where the ground pairs show the cloud pitched by p, the ground pairs and KISS-ICP's
+    steps both lose its climb: p per metre of the step along the track."""
+    from worker.preparation.localization import fused
+    from worker.preparation.localization.lidar_yaw import YawOffset
+
+    p = 1e-3
+    monkeypatch.setattr(fused, "lidar_pitch_offset", lambda *a, **kw: YawOffset(p, 1e-4, 50))
+    plain = build_problem(true_ego_input(short_switch, fused_lidar_pitch=False), Health(), Sigmas())
+    tilted = build_problem(true_ego_input(short_switch), Health(), Sigmas())
+    assert plain.ground is not None and tilted.ground is not None
+    assert tilted.ground["pitch_offset"] == p and plain.ground["pitch_offset"] == 0.0
+    g0, g1 = plain.ground["T_k_j"][:, :3, 3], tilted.ground["T_k_j"][:, :3, 3]
+    np.testing.assert_allclose(g1[:, 2] - g0[:, 2], -p * g0[:, 0], atol=1e-6)
+    np.testing.assert_allclose(tilted.d_t[:, 2] - plain.d_t[:, 2], -p * plain.d_t[:, 0], atol=1e-6)
