@@ -37,15 +37,36 @@ def _truth(folder: Path, times: np.ndarray) -> np.ndarray:
     return PoseTrack.from_csv(folder / "ground_truth/poses_dense.csv").interpolate(times)
 
 
-def test_true_motion_keeps_to_the_rails_within_the_sway(short_switch: Path) -> None:
+def _with_poses_and_sway(pb, T: np.ndarray, sway: np.ndarray, d: float = 0.0) -> np.ndarray:
+    """A parameter vector with poses T (n, 4, 4), sway offsets (n, 2) and bogie offset d."""
+    from worker.preparation.localization.fused import _n_params, _sway_col
+
+    x = np.zeros(_n_params(pb.n, pb.n_knots, pb.n_acc_knots, sway=True))
+    xp = x[: 6 * pb.n].reshape(pb.n, 6)
+    xp[:, :3] = Rotation.from_matrix(T[:, :3, :3] @ np.swapaxes(pb.R0, 1, 2)).as_rotvec()
+    xp[:, 3:] = T[:, :3, 3] - pb.p0
+    i0 = _sway_col(pb)
+    x[i0 : i0 + 2 * pb.n] = sway.ravel()
+    x[i0 + 2 * pb.n] = d
+    return x
+
+
+def test_true_motion_keeps_to_the_rails_with_the_true_sway(short_switch: Path) -> None:
+    """The true poses with the true sway (the base's offset from the true centreline,
+    sideways and up) meet every rail-motion step within its sigma (1 mm); without the sway
+    the steps are off by its changes (up to 2.6 mm sideways, 3.3 mm up a frame)."""
     inp = true_ego_input(short_switch)
     pb = build_problem(inp, Health(), Sigmas())
-    assert pb.nh is not None and pb.nh["d"] == 0.0
+    assert pb.nh is not None and inp.ego is not None
     T = _truth(short_switch, inp.times)
-    r = _rail_motion_residuals(pb, T[:, :3, :3], T[:, :3, 3])
-    # the generator's sway: 6 mm at 0.7 Hz, up to 2.6 mm a frame against a 3 mm sigma
-    assert np.sqrt(np.mean(r**2)) < 1.0, r
-    assert np.max(np.abs(r)) < 1.5, r
+    proj = inp.ego.project(T[:, :3, 3])
+    sway = np.column_stack([proj.lateral, proj.vertical - np.mean(proj.vertical)])
+    R, p = T[:, :3, :3], T[:, :3, 3]
+    r = _rail_motion_residuals(pb, R, p, _with_poses_and_sway(pb, T, sway))
+    assert np.max(np.abs(r)) < 1.0, r
+    assert np.max(np.abs(sway)) < 0.008, sway  # the generator's 6 mm sway, 4 mm bounce
+    r0 = _rail_motion_residuals(pb, R, p, _with_poses_and_sway(pb, T, 0.0 * sway))
+    assert np.max(np.abs(r0)) > 1.5, r0
 
 
 def _lateral_step_errors_mm(track: PoseTrack, folder: Path, times: np.ndarray) -> np.ndarray:
@@ -85,8 +106,9 @@ def test_rail_motion_keeps_every_lateral_step_within_the_sway(short_switch: Path
 def test_a_grade_change_keeps_to_the_rails_vertically(short_switch: Path) -> None:
     """A base climbing along a vertical curve of radius 2 km (10 m steps, its pitch the
     track's tangent) meets the vertical rows exactly: each step rises by the chord of its
-    pitch change, 25 mm (with the chord's sign turned, 50 mm off against a 3 mm sigma).
-    One frame 6 mm too high shows in its two steps, by 2 sigmas each, with opposite signs."""
+    pitch change, 25 mm (with the chord's sign turned, 50 mm off against a 1 mm sigma).
+    One frame 6 mm too high (and no bounce to explain it) shows in its two steps, by 6 mm
+    each, with opposite signs."""
     inp = true_ego_input(short_switch)
     pb = build_problem(inp, Health(), Sigmas())
     assert pb.nh is not None
@@ -95,12 +117,13 @@ def test_a_grade_change_keeps_to_the_rails_vertically(short_switch: Path) -> Non
     p = np.column_stack([rho * np.sin(a), np.zeros(n), rho * (1.0 - np.cos(a))])
     # climbing: the nose up, a negative rotation about +y (the left axis)
     R = np.stack([Rotation.from_rotvec([0.0, -ak, 0.0]).as_matrix() for ak in a])
-    vert = _rail_motion_residuals(pb, R, p).reshape(-1, 2)[:, 1]
+    x = _with_poses_and_sway(pb, np.tile(np.eye(4), (n, 1, 1)), np.zeros((n, 2)))
+    vert = _rail_motion_residuals(pb, R, p, x).reshape(-1, 2)[:, 1]
     assert np.max(np.abs(vert)) * sigma < 1e-4, vert
     bumped = p.copy()
     bumped[4, 2] += 0.006
-    bump = _rail_motion_residuals(pb, R, bumped).reshape(-1, 2)[:, 1]
-    assert abs(bump[3] - 2.0) < 0.05 and abs(bump[4] + 2.0) < 0.05, bump
+    bump = _rail_motion_residuals(pb, R, bumped, x).reshape(-1, 2)[:, 1]
+    assert abs(bump[3] * sigma - 0.006) < 1e-4 and abs(bump[4] * sigma + 0.006) < 1e-4, bump
     assert np.max(np.abs(np.delete(bump, [3, 4]))) * sigma < 1e-4, bump
 
 

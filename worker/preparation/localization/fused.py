@@ -94,7 +94,7 @@ from worker.preparation.localization.odometry import (
     odometry_track,
 )
 from worker.preparation.localization.rails import RailsStrategy, orientation_noise, rail_frames
-from worker.preparation.localization.scan_errors import with_scan_errors, with_step_differences
+from worker.preparation.localization.scan_errors import with_scan_errors
 from worker.preparation.localization.scan_pairs import (
     closure_factor,
     register_pairs,
@@ -266,20 +266,27 @@ class Sigmas:
     gyro_bias: float = 5.0 * DEG / 3600.0
     #: A rail vehicle's base moves along its own axis (:func:`_rail_motion`): frame k + 1's
     #: lateral position in frame k is the chord of the turn between them plus the turn
-    #: times the base's distance ahead of the bogies' midpoint, within this sigma per step
-    #: (m): the body's sway on its suspension (a few mm at about 1 Hz, 2-3 mm a frame).
+    #: times the base's distance ahead of the bogies' midpoint (estimated), plus the
+    #: change of the body's sway (per-frame offset states), within this sigma per step
+    #: (m): what the rails' irregularities and the model's linearisation leave.
     #: The option ``fused_rail_motion: false`` turns it off.
     rail_motion: bool = True
-    rail_motion_lat: float = 0.003
+    rail_motion_lat: float = 0.001
     #: The same vertically: frame k + 1's height in frame k is the chord of the pitch
-    #: between them (the body follows the track's grade), within this sigma per step (m,
-    #: the body's bounce on its suspension); 0 turns it off.
-    rail_motion_vert: float = 0.003
-    #: Share of a rail-motion step's variance that adds up over steps in the solution's
-    #: information: the rest is the body's sway, an offset from the rail-following path
-    #: that stays within millimetres (:mod:`.scan_errors`: the steps' errors as
-    #: differences of per-frame offsets; 1: independent steps).
-    rail_motion_drift_share: float = 0.25
+    #: between them (the body follows the track's grade) plus the change of its bounce,
+    #: within this sigma per step (m); 0 turns it off.
+    rail_motion_vert: float = 0.001
+    #: The body's sway and bounce on its suspension: per-frame offsets (lateral,
+    #: vertical, m) from the rail-following path with this prior (a few mm; the wheels'
+    #: play in the gauge adds as much sideways) ...
+    sway: tuple[float, float] = (0.006, 0.006)
+    #: ... that change at up to this rate (m/s, 1 sigma: 6 mm at 0.7 Hz moves at up to
+    #: 26 mm/s, 4 mm at 1.3 Hz at 33 mm/s): a sway's offset cannot run away as
+    #: independent steps would let it.
+    sway_rate: tuple[float, float] = (0.03, 0.03)
+    #: Prior sigma of the base's distance ahead of the bogies' midpoint (m), estimated
+    #: where the track turns (a locomotive's front is 5-10 m ahead of it).
+    bogie_offset: float = 10.0
     #: The INS's accelerometers (:mod:`.accelerometer`): the second differences of the
     #: positions they see, sigma (along, lateral, vertical, m) per stencil: a
     #: tactical-grade accelerometer's velocity noise over 0.1 s is a few tenths of a
@@ -470,10 +477,24 @@ def _frames_sharing(s: F64, length_m: float) -> F64:
     return np.maximum(hi - lo, 1).astype(np.float64)
 
 
-def _n_params(n: int, n_knots: int, n_acc_knots: int = 0) -> int:
+def _n_params(n: int, n_knots: int, n_acc_knots: int = 0, sway: bool = False) -> int:
     """Length of the parameter vector: poses, misalignment, INS bias knots, gyro bias,
-    accelerometer bias knots."""
-    return 6 * n + 7 + 6 * n_knots + 3 + 3 * n_acc_knots
+    accelerometer bias knots, and with the rail motion the body's sway offsets (2 per
+    frame) and the base's distance ahead of the bogies' midpoint."""
+    return 6 * n + 7 + 6 * n_knots + 3 + 3 * n_acc_knots + (2 * n + 1 if sway else 0)
+
+
+def _sway_col(pb: Problem) -> int:
+    """First column of the sway offsets (frame k's lateral, vertical at + 2 k, + 2 k + 1;
+    the bogie offset after the last frame's)."""
+    return _acc_bias_col(pb.n, pb.n_knots) + 3 * pb.n_acc_knots
+
+
+def _sway_of(x: F64, pb: Problem) -> tuple[F64, float]:
+    """(n, 2) the body's sway offsets (lateral, vertical, m) and the base's distance ahead
+    of the bogies' midpoint (m)."""
+    i0 = _sway_col(pb)
+    return x[i0 : i0 + 2 * pb.n].reshape(pb.n, 2), float(x[i0 + 2 * pb.n])
 
 
 def _acc_bias_col(n: int, n_knots: int) -> int:
@@ -552,6 +573,10 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
             a = _accel_residuals(x, pb, R, p).ravel()
             i0 = _block_offsets(pb)["accel"]
             r[i0 : i0 + len(a)] = a
+        if pb.nh is not None:
+            h = _rail_motion_residuals(pb, R, p, x)
+            i0 = _block_offsets(pb)["nh"]
+            r[i0 : i0 + len(h)] = h
         return r
     R, p, _, _, _ = _unpack(x, pb)
     sig = pb.sig
@@ -595,7 +620,7 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
     if pb.gyro is not None:
         out.append(_gyro_residuals(x, pb, R))
     if pb.nh is not None:
-        out.append(_rail_motion_residuals(pb, R, p))
+        out.append(_rail_motion_residuals(pb, R, p, x))
     if pb.accel is not None:
         out.append(_accel_residuals(x, pb, R, p).ravel())
     # smoothness
@@ -669,6 +694,11 @@ def _prior_blocks(x: F64, pb: Problem) -> F64:
     knots = _bias_knots_of(x, pb)
     out.append((knots / pb.bias_sigma).ravel())
     out.append((np.diff(knots, axis=0) / pb.bias_step_sigma).ravel())
+    if pb.nh is not None:
+        o, d = _sway_of(x, pb)
+        out.append((o / np.asarray(sig.sway)).ravel())
+        out.append((np.diff(o, axis=0) / pb.nh["sway_step"]).ravel())
+        out.append(np.array([d / sig.bogie_offset]))
     return np.concatenate(out)
 
 
@@ -695,7 +725,7 @@ def _cached_sparsity(pb: Problem) -> csc_matrix:
 def sparsity(pb: Problem) -> csc_matrix:
     """Jacobian sparsity pattern matching :func:`residuals`' row order."""
     n = pb.n
-    m_cols = _n_params(n, pb.n_knots, pb.n_acc_knots)
+    m_cols = _n_params(n, pb.n_knots, pb.n_acc_knots, pb.nh is not None)
     rows: list[tuple[int, list[int]]] = []
     mis = list(range(6 * n, 6 * n + 7))
 
@@ -758,10 +788,12 @@ def sparsity(pb: Problem) -> csc_matrix:
             for _ in range(3):
                 rows.append((r, frame_cols(k) + frame_cols(k + 1) + gyro_bias))
                 r += 1
+    s0 = _sway_col(pb)
     if pb.nh is not None:
         for k in range(n - 1):
-            for _ in range(2):
-                rows.append((r, frame_cols(k) + frame_cols(k + 1)))
+            for c in range(2):
+                cols = frame_cols(k) + frame_cols(k + 1) + [s0 + 2 * k + c, s0 + 2 * k + 2 + c]
+                rows.append((r, cols + ([s0 + 2 * n] if c == 0 else [])))
                 r += 1
     if pb.accel is not None:
         for k in range(n - 2):
@@ -804,6 +836,15 @@ def sparsity(pb: Problem) -> csc_matrix:
         for c in range(6):
             rows.append((r, [knot_cols(j)[c], knot_cols(j + 1)[c]]))
             r += 1
+    if pb.nh is not None:  # sway offsets, their changes, the bogie offset
+        for c in range(s0, s0 + 2 * n):
+            rows.append((r, [c]))
+            r += 1
+        for c in range(s0, s0 + 2 * (n - 1)):
+            rows.append((r, [c, c + 2]))
+            r += 1
+        rows.append((r, [s0 + 2 * n]))
+        r += 1
     ii = np.concatenate([np.full(len(cols), i) for i, cols in rows])
     jj = np.concatenate([np.asarray(cols) for _, cols in rows])
     return coo_matrix((np.ones(len(ii), dtype=int), (ii, jj)), shape=(r, m_cols)).tocsc()
@@ -1189,29 +1230,34 @@ def _accel_residuals(x: F64, pb: Problem, R: F64, p: F64) -> F64:
 
 def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
     """The rail-motion block: a rail vehicle's base point moves along the body's axis
-    except for the chord of a turn and, for a base at distance d ahead of the midpoint
-    of its two bogies, d times the turn (in a curve of radius r the body turns about the
-    curve's centre; a point d ahead of the bogies' midpoint moves at d / r to the body's
-    axis). d is 0 here (a base over the bogies' midpoint): estimating it, which needs a
-    sequence whose curvature varies, is not done (the bogie cells of the robustness matrix
-    ran within their goals with d = 0)."""
+    except for the chord of a turn, d times the turn for a base at distance d ahead of the
+    midpoint of its two bogies (in a curve of radius r the body turns about the curve's
+    centre; a point d ahead of the bogies' midpoint moves at d / r to the body's axis; d
+    is estimated, with a prior, where the track turns) and the change of the body's sway
+    on its suspension (per-frame offset states, bounded, changing at a bounded rate).
+
+    Returns w (n-1, 2) 1/sigma of each step's lateral and vertical rows and sway_step
+    (n-1, 2) the sigma of the sway's change over each step (m)."""
     if n < 2 or not (sig.rail_motion and inp.options.get("fused_rail_motion", True)):
         return None
     w_vert = 1.0 / sig.rail_motion_vert if sig.rail_motion_vert > 0 else 0.0
     w = np.column_stack([np.full(n - 1, 1.0 / sig.rail_motion_lat), np.full(n - 1, w_vert)])
-    return {"w": w, "d": 0.0}
+    dt = np.maximum(np.diff(inp.times), 1e-3)
+    return {"w": w, "sway_step": dt[:, None] * np.asarray(sig.sway_rate)[None, :]}
 
 
-def _rail_motion_residuals(pb: Problem, R: F64, p: F64) -> F64:
+def _rail_motion_residuals(pb: Problem, R: F64, p: F64, x: F64) -> F64:
     """((n-1) 2,) normalised residuals of the rail motion: frame k + 1's lateral position
-    in frame k against the turn between them times (half the step + ``d``), and its height
-    against the pitch between them times half the step (a pitch about +y, the left axis,
-    lowers the nose)."""
+    in frame k against the turn between them times (half the step + d) and the change of
+    the sway, its height against the pitch between them times half the step (a pitch
+    about +y, the left axis, lowers the nose) and the change of the bounce."""
     assert pb.nh is not None
+    o, d = _sway_of(x, pb)
     B = np.einsum("nji,nj->ni", R[:-1], p[1:] - p[:-1])
     rot = _log_rotation(np.swapaxes(R[:-1], 1, 2) @ R[1:])
-    lat = B[:, 1] - rot[:, 2] * (0.5 * B[:, 0] + pb.nh["d"])
-    vert = B[:, 2] + rot[:, 1] * 0.5 * B[:, 0]
+    do = np.diff(o, axis=0)
+    lat = B[:, 1] - rot[:, 2] * (0.5 * B[:, 0] + d) - do[:, 0]
+    vert = B[:, 2] + rot[:, 1] * 0.5 * B[:, 0] - do[:, 1]
     return (np.column_stack([lat, vert]) * pb.nh["w"] / pb.s("nh")).ravel()
 
 
@@ -1733,7 +1779,7 @@ def _frame_period(pb: Problem) -> int:
 
 
 def _column_groups(
-    n: int, n_knots: int, period: int = 3, n_acc_knots: int = 0
+    n: int, n_knots: int, period: int = 3, n_acc_knots: int = 0, sway: bool = False
 ) -> list[NDArray[np.int64]]:
     """Columns that share no residual row (finite differences in one evaluation each).
 
@@ -1743,7 +1789,9 @@ def _column_groups(
     with the same (knot mod 3, component); the 7 misalignment columns each stand alone,
     the first three each with one of the gyro bias' (which only gyro rows touch). The
     accelerometer bias knots (only accelerometer rows touch them) join the INS bias
-    knots' groups of the same phase.
+    knots' groups of the same phase. The sway offsets (only rail-motion rows and their
+    priors touch them) of frames 2 apart go together, per component, beside the last four
+    misalignment columns; the bogie offset beside the first.
     """
     groups = []
     for phase in range(period):
@@ -1752,8 +1800,14 @@ def _column_groups(
             if len(frames):
                 groups.append(6 * frames + comp)
     gb = _gyro_bias_col(n, n_knots)
-    groups.extend(np.array([6 * n + j] + ([gb + j] if j < 3 else [])) for j in range(7))
     a0 = _acc_bias_col(n, n_knots)
+    s0 = a0 + 3 * n_acc_knots
+    extra: list[list[int]] = [[gb], [gb + 1], [gb + 2], [], [], [], []]
+    if sway:
+        extra[0].append(s0 + 2 * n)
+        for i, (phase, comp) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+            extra[3 + i] += list(s0 + 2 * np.arange(phase, n, 2) + comp)
+    groups.extend(np.array([6 * n + j, *extra[j]], dtype=np.int64) for j in range(7))
     for phase in range(3):
         for comp in range(6):
             knots = np.arange(phase, n_knots, 3)
@@ -1769,6 +1823,13 @@ def _column_groups(
 #: truncation, the error: the solution's noise between runs was 5e-7 m along the track at
 #: 1e-6, 2-5e-6 at 1e-7 and 3-6e-8 at 1e-5 (the residuals are nearly linear there).
 FD_STEP = 1e-5
+
+
+def _groups(pb: Problem) -> list[NDArray[np.int64]]:
+    """:func:`_column_groups` of ``pb``."""
+    return _column_groups(
+        pb.n, pb.n_knots, _frame_period(pb), pb.n_acc_knots, sway=pb.nh is not None
+    )
 
 
 def jacobian(x: F64, r0: F64, pb: Problem, S: csc_matrix, groups: list) -> csc_matrix:
@@ -1844,9 +1905,10 @@ def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
     The problem is nearly linear (small rotation corrections), so a few iterations converge;
     a small Levenberg damping keeps the unobservable directions at their priors.
     """
-    x = np.zeros(_n_params(pb.n, pb.n_knots, pb.n_acc_knots)) if x0 is None else x0.copy()
+    n_x = _n_params(pb.n, pb.n_knots, pb.n_acc_knots, pb.nh is not None)
+    x = np.zeros(n_x) if x0 is None else x0.copy()
     S = _cached_sparsity(pb)
-    groups = _column_groups(pb.n, pb.n_knots, _frame_period(pb), pb.n_acc_knots)
+    groups = _groups(pb)
     c = pb.sig.huber
     J, step, fresh = None, np.inf, False
     for it in range(max_iter + 1):
@@ -1949,7 +2011,7 @@ def redundancy(
     and the full diagonal was most of a 100-frame solve's time."""
     r = residuals(x, pb)
     S = _cached_sparsity(pb)
-    J = jacobian(x, r, pb, S, _column_groups(pb.n, pb.n_knots, _frame_period(pb), pb.n_acc_knots))
+    J = jacobian(x, r, pb, S, _groups(pb))
     a = np.abs(r)
     c = pb.sig.huber
     w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
@@ -2213,7 +2275,7 @@ def information(pb: Problem, x: F64) -> PoseInformation:
     scan error columns follow the problem's own, marginalised with them."""
     r = residuals(x, pb)
     S = _cached_sparsity(pb)
-    J = jacobian(x, r, pb, S, _column_groups(pb.n, pb.n_knots, _frame_period(pb), pb.n_acc_knots))
+    J = jacobian(x, r, pb, S, _groups(pb))
     a = np.abs(r)
     c = pb.sig.huber
     w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
@@ -2225,14 +2287,6 @@ def information(pb: Problem, x: F64) -> PoseInformation:
         q = np.arange(len(pb.odo_pairs["k"]))
         w[(i0 + 3 * q[:, None] + np.array([0, 1])).ravel()] = 0.0
     J, w = _with_scan_errors(pb, J, w)
-    if pb.nh is not None and pb.sig.rail_motion_drift_share < 1.0:
-        # the sway: each step's lateral error the difference of two frames' offsets
-        rows = _block_offsets(pb)["nh"] + 2 * np.arange(pb.n - 1)[:, None] + np.arange(2)
-        a = pb.nh["w"] / pb.s("nh")
-        J, w = with_step_differences(
-            J, w, rows, np.broadcast_to(a, (pb.n - 1, 2)),
-            np.ones(pb.n - 1, dtype=bool), pb.sig.rail_motion_drift_share,
-        )  # fmt: skip
     A = (J.T.multiply(w[None, :]).tocsc() @ J).tocsc()
     meas = np.concatenate([b.ravel() for b in measurement_blocks(pb, x).values()])
     meas = meas[meas != 0.0]
