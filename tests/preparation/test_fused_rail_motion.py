@@ -39,15 +39,15 @@ def _truth(folder: Path, times: np.ndarray) -> np.ndarray:
 
 def _with_poses_and_sway(pb, T: np.ndarray, sway: np.ndarray, d: float = 0.0) -> np.ndarray:
     """A parameter vector with poses T (n, 4, 4), sway offsets (n, 2) and bogie offset d."""
-    from worker.preparation.localization.fused import _n_params, _sway_col
+    from worker.preparation.localization.fused import _extra_cols, n_params
 
-    x = np.zeros(_n_params(pb.n, pb.n_knots, pb.n_acc_knots, sway=True))
+    x = np.zeros(n_params(pb))
     xp = x[: 6 * pb.n].reshape(pb.n, 6)
     xp[:, :3] = Rotation.from_matrix(T[:, :3, :3] @ np.swapaxes(pb.R0, 1, 2)).as_rotvec()
     xp[:, 3:] = T[:, :3, 3] - pb.p0
-    i0 = _sway_col(pb)
+    i0 = _extra_cols(pb)["sway"]
     x[i0 : i0 + 2 * pb.n] = sway.ravel()
-    x[i0 + 2 * pb.n] = d
+    x[_extra_cols(pb)["bogie"]] = d
     return x
 
 
@@ -144,3 +144,38 @@ def test_a_significant_cloud_pitch_is_taken_out_of_every_lidar_step(
     g0, g1 = plain.ground["T_k_j"][:, :3, 3], tilted.ground["T_k_j"][:, :3, 3]
     np.testing.assert_allclose(g1[:, 2] - g0[:, 2], -p * g0[:, 0], atol=1e-6)
     np.testing.assert_allclose(tilted.d_t[:, 2] - plain.d_t[:, 2], -p * plain.d_t[:, 0], atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def switch_30(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from worker.synth.generator import SynthConfig, generate
+
+    cfg = SynthConfig(
+        scene="switch", frames=30, scale=0.05, seed=0, lidar_density=0.3, ins_profile="hard",
+        cameras=(),
+    )  # fmt: skip
+    return generate(tmp_path_factory.mktemp("switch30") / "seq", cfg).folder
+
+
+def test_a_pitched_cloud_is_estimated_with_the_poses_not_followed(switch_30: Path) -> None:
+    """Lidar steps and ground pairs measured in a cloud pitched by c against the base climb
+    by c per metre: the solve estimates c (the rail motion says the base moves along its
+    own axis) instead of climbing the poses by it. (On 12 frames two thirds of it.)"""
+    from worker.preparation.localization.fused import _cloud_pitch_of, _tilted, solve
+
+    inp = true_ego_input(switch_30, fused_lidar_pitch=False)
+    est, z_end = [], []
+    for c in (0.0, 1e-3):  # rad: 1 mrad
+        pb = build_problem(inp, Health(), Sigmas())
+        assert pb.ground is not None
+        T = pb.ground["T_k_j"]
+        T[:, :3, 3] = _tilted(T[:, :3, 3], -c)
+        pb.d_t = _tilted(pb.d_t, -c)
+        x = solve(pb)
+        est.append(_cloud_pitch_of(x, pb))
+        z = x[: 6 * pb.n].reshape(pb.n, 6)[:, 5]
+        z_end.append(z[-1] - z[0])
+        length = float(np.max(pb.ground["T_k_j"][:, 0, 3]))
+    assert abs(est[1] - est[0] - 1e-3) < 0.2e-3, est
+    # the poses' last height moves by far less than the climb over a pair, c x
+    assert abs(z_end[1] - z_end[0]) < 0.25 * 1e-3 * length, z_end

@@ -18,9 +18,9 @@ from tests.synth_fixtures import synth_sequence, true_ego_input
 from worker.preparation.localization.base import Health
 from worker.preparation.localization.fused import (
     Sigmas,
-    _n_params,
     build_problem,
     measurement_blocks,
+    n_params,
 )
 
 
@@ -45,7 +45,7 @@ def _velocity_residuals(folder: Path, lateral_drift_mps: float) -> np.ndarray:
     t = np.asarray(inp.times) - inp.times[0]
     p = T[:, :3, 3] + lateral_drift_mps * t[:, None] * T[:, :3, 1]
     n = pb.n
-    x = np.zeros(_n_params(n, pb.n_knots, pb.n_acc_knots, pb.nh is not None))
+    x = np.zeros(n_params(pb))
     xp = x[: 6 * n].reshape(n, 6)
     xp[:, :3] = Rotation.from_matrix(T[:, :3, :3] @ np.swapaxes(pb.R0, 1, 2)).as_rotvec()
     xp[:, 3:] = p - pb.p0

@@ -287,6 +287,14 @@ class Sigmas:
     #: Prior sigma of the base's distance ahead of the bogies' midpoint (m), estimated
     #: where the track turns (a locomotive's front is 5-10 m ahead of it).
     bogie_offset: float = 10.0
+    #: Prior sigma of the merged cloud's residual pitch against the base (rad), estimated
+    #: with the poses (after :func:`~.lidar_yaw.lidar_pitch_offset`'s, applied where it
+    #: is significant): a cloud pitched by p gives every lidar step and ground pair a climb
+    #: of p per metre, which the rail motion (the base moves along its own axis) and the
+    #: INS tell from a grade. Beside the body's bounce the estimate before the solve was
+    #: not significant at 0.8 +- 0.45 mrad on station-f100-d1-osdar23-s11 (a 50 mm climb
+    #: over 60 m, 6 px).
+    cloud_pitch: float = 1e-3
     #: The INS's accelerometers (:mod:`.accelerometer`): the second differences of the
     #: positions they see, sigma (along, lateral, vertical, m) per stencil: a
     #: tactical-grade accelerometer's velocity noise over 0.1 s is a few tenths of a
@@ -477,24 +485,55 @@ def _frames_sharing(s: F64, length_m: float) -> F64:
     return np.maximum(hi - lo, 1).astype(np.float64)
 
 
-def _n_params(n: int, n_knots: int, n_acc_knots: int = 0, sway: bool = False) -> int:
-    """Length of the parameter vector: poses, misalignment, INS bias knots, gyro bias,
-    accelerometer bias knots, and with the rail motion the body's sway offsets (2 per
-    frame) and the base's distance ahead of the bogies' midpoint."""
-    return 6 * n + 7 + 6 * n_knots + 3 + 3 * n_acc_knots + (2 * n + 1 if sway else 0)
+def _n_params(n: int, n_knots: int, n_acc_knots: int = 0) -> int:
+    """Length of the parameter vector without :func:`_extra_cols`: poses, misalignment, INS
+    bias knots, gyro bias, accelerometer bias knots."""
+    return 6 * n + 7 + 6 * n_knots + 3 + 3 * n_acc_knots
 
 
-def _sway_col(pb: Problem) -> int:
-    """First column of the sway offsets (frame k's lateral, vertical at + 2 k, + 2 k + 1;
-    the bogie offset after the last frame's)."""
-    return _acc_bias_col(pb.n, pb.n_knots) + 3 * pb.n_acc_knots
+def _extra_cols(pb: Problem) -> dict[str, int]:
+    """First column of each block after :func:`_n_params`'s, and "end" (the length of the
+    parameter vector): with the rail motion the body's sway offsets ("sway": frame k's
+    lateral, vertical at + 2 k, + 2 k + 1) and the base's distance ahead of the bogies'
+    midpoint ("bogie"); with the ground pairs the cloud's residual pitch ("cloud_pitch")."""
+    i = _n_params(pb.n, pb.n_knots, pb.n_acc_knots)
+    out = {}
+    if pb.nh is not None:
+        out["sway"], out["bogie"] = i, i + 2 * pb.n
+        i += 2 * pb.n + 1
+    if pb.ground is not None:
+        out["cloud_pitch"] = i
+        i += 1
+    out["end"] = i
+    return out
+
+
+def n_params(pb: Problem) -> int:
+    """Length of ``pb``'s parameter vector."""
+    return _extra_cols(pb)["end"]
 
 
 def _sway_of(x: F64, pb: Problem) -> tuple[F64, float]:
     """(n, 2) the body's sway offsets (lateral, vertical, m) and the base's distance ahead
     of the bogies' midpoint (m)."""
-    i0 = _sway_col(pb)
-    return x[i0 : i0 + 2 * pb.n].reshape(pb.n, 2), float(x[i0 + 2 * pb.n])
+    cols = _extra_cols(pb)
+    i0 = cols["sway"]
+    return x[i0 : i0 + 2 * pb.n].reshape(pb.n, 2), float(x[cols["bogie"]])
+
+
+def _cloud_pitch_of(x: F64, pb: Problem) -> float:
+    """The merged cloud's residual pitch against the base (rad; 0 without ground pairs)."""
+    i = _extra_cols(pb).get("cloud_pitch")
+    return 0.0 if i is None else float(x[i])
+
+
+def _tilted(t: F64, pitch: float, along: F64 | None = None) -> F64:
+    """(m, 3) translations measured in a cloud pitched by ``pitch`` (rad, about the base y
+    axis; small) expressed in the base: :func:`~.lidar_yaw.tilt_lidar_poses` to first
+    order, the climb ``pitch`` times ``along`` (m,) (default the translations' own x: the
+    solve passes its poses' own, as KISS-ICP's is unreliable on a degenerate straight)."""
+    x = t[:, 0] if along is None else along
+    return t + pitch * np.column_stack([t[:, 2], np.zeros(len(t)), -x])
 
 
 def _acc_bias_col(n: int, n_knots: int) -> int:
@@ -577,14 +616,19 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
             h = _rail_motion_residuals(pb, R, p, x)
             i0 = _block_offsets(pb)["nh"]
             r[i0 : i0 + len(h)] = h
+        if pb.ground is not None:
+            h = _ground_residuals(x, pb, R, p)
+            i0 = _block_offsets(pb)["ground"]
+            r[i0 : i0 + len(h)] = h
+            h = _odometry_step_residuals(x, pb, np.swapaxes(R[:-1], 1, 2), p)
+            r[: len(h)] = h
         return r
     R, p, _, _, _ = _unpack(x, pb)
     sig = pb.sig
     out = []
     # odometry
     Rt = np.swapaxes(R[:-1], 1, 2)
-    dp = np.einsum("nij,nj->ni", Rt, p[1:] - p[:-1]) - pb.d_t
-    out.append((dp * pb.w_odo_t / pb.s_odo("odo_t")).ravel())
+    out.append(_odometry_step_residuals(x, pb, Rt, p))
     E = np.swapaxes(pb.d_R, 1, 2) @ Rt @ R[1:]
     out.append((_log_rotation(E) * pb.w_odo_r / pb.s_odo("odo_r")).ravel())
     out.append(_ins_blocks(x, pb, R, p))
@@ -598,16 +642,8 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
         out.append(ver_r)
         err = _log_rotation(np.swapaxes(Rr, 1, 2) @ R)
         out.append((err / (pb.rail["sigma_r"] * pb.s("rail_r"))).ravel())
-    # ground pairs: height, roll and pitch of frame j in frame k
     if pb.ground is not None:
-        g = pb.ground
-        Rk, Rj = R[g["k"]], R[g["j"]]
-        MRt = np.swapaxes(g["T_k_j"][:, :3, :3], 1, 2)
-        B_t = np.einsum("nji,nj->ni", Rk, p[g["j"]] - p[g["k"]])
-        E_t = np.einsum("nij,nj->ni", MRt, B_t - g["T_k_j"][:, :3, 3])
-        E_r = _log_rotation(MRt @ np.swapaxes(Rk, 1, 2) @ Rj)
-        gr = np.column_stack([E_t[:, 2], E_r[:, 0], E_r[:, 1]]) * g["w"] / pb.s("ground")
-        out.append(gr.ravel())
+        out.append(_ground_residuals(x, pb, R, p))
     # INS velocity: the displacement over each step, along the track and sideways
     if pb.vel is not None:
         kv = pb.vel["k"]
@@ -639,6 +675,29 @@ def residuals(x: F64, pb: Problem, same_poses: tuple[F64, F64, F64] | None = Non
         out.append((j_base / np.asarray(sig.jerk)).ravel())
     out.append(_prior_blocks(x, pb))
     return np.concatenate(out)
+
+
+def _odometry_step_residuals(x: F64, pb: Problem, Rt: F64, p: F64) -> F64:
+    """((n-1) 3,) normalised residuals of the odometry's step translations (measured in
+    the cloud: tilted by its residual pitch); Rt (n-1, 3, 3) the earlier frames' R^T."""
+    B = np.einsum("nij,nj->ni", Rt, p[1:] - p[:-1])
+    dp = B - _tilted(pb.d_t, _cloud_pitch_of(x, pb), B[:, 0])
+    return (dp * pb.w_odo_t / pb.s_odo("odo_t")).ravel()
+
+
+def _ground_residuals(x: F64, pb: Problem, R: F64, p: F64) -> F64:
+    """((P) 3,) normalised residuals of the ground pairs: the height, roll and pitch of frame
+    j in frame k (the measured translation tilted by the cloud's residual pitch)."""
+    assert pb.ground is not None
+    g = pb.ground
+    Rk, Rj = R[g["k"]], R[g["j"]]
+    MRt = np.swapaxes(g["T_k_j"][:, :3, :3], 1, 2)
+    B_t = np.einsum("nji,nj->ni", Rk, p[g["j"]] - p[g["k"]])
+    t = _tilted(g["T_k_j"][:, :3, 3], _cloud_pitch_of(x, pb), B_t[:, 0])
+    E_t = np.einsum("nij,nj->ni", MRt, B_t - t)
+    E_r = _log_rotation(MRt @ np.swapaxes(Rk, 1, 2) @ Rj)
+    gr = np.column_stack([E_t[:, 2], E_r[:, 0], E_r[:, 1]]) * g["w"] / pb.s("ground")
+    return gr.ravel()
 
 
 def _gyro_residuals(x: F64, pb: Problem, R: F64) -> F64:
@@ -699,6 +758,8 @@ def _prior_blocks(x: F64, pb: Problem) -> F64:
         out.append((o / np.asarray(sig.sway)).ravel())
         out.append((np.diff(o, axis=0) / pb.nh["sway_step"]).ravel())
         out.append(np.array([d / sig.bogie_offset]))
+    if pb.ground is not None:
+        out.append(np.array([_cloud_pitch_of(x, pb) / sig.cloud_pitch]))
     return np.concatenate(out)
 
 
@@ -725,7 +786,8 @@ def _cached_sparsity(pb: Problem) -> csc_matrix:
 def sparsity(pb: Problem) -> csc_matrix:
     """Jacobian sparsity pattern matching :func:`residuals`' row order."""
     n = pb.n
-    m_cols = _n_params(n, pb.n_knots, pb.n_acc_knots, pb.nh is not None)
+    m_cols = n_params(pb)
+    extra = _extra_cols(pb)
     rows: list[tuple[int, list[int]]] = []
     mis = list(range(6 * n, 6 * n + 7))
 
@@ -741,11 +803,11 @@ def sparsity(pb: Problem) -> csc_matrix:
         return knot_cols(j) + (knot_cols(j + 1) if j + 1 < pb.n_knots else [])
 
     r = 0
-    for block in range(2):  # odometry translation, rotation
-        del block
+    tilt = [extra["cloud_pitch"]] if "cloud_pitch" in extra else []
+    for block in range(2):  # odometry translation (with the cloud's pitch), rotation
         for k in range(n - 1):
             for _ in range(3):
-                rows.append((r, frame_cols(k) + frame_cols(k + 1)))
+                rows.append((r, frame_cols(k) + frame_cols(k + 1) + (tilt if block == 0 else [])))
                 r += 1
     for block in range(2):  # INS position, attitude
         del block
@@ -764,8 +826,9 @@ def sparsity(pb: Problem) -> csc_matrix:
                 r += 1
     if pb.ground is not None:
         for k, j in zip(pb.ground["k"], pb.ground["j"], strict=True):
-            for _ in range(3):
-                rows.append((r, frame_cols(int(k)) + frame_cols(int(j))))
+            for c in range(3):
+                tilt = [extra["cloud_pitch"]] if c == 0 else []
+                rows.append((r, frame_cols(int(k)) + frame_cols(int(j)) + tilt))
                 r += 1
     if pb.vel is not None:
         for k in pb.vel["k"]:
@@ -788,7 +851,7 @@ def sparsity(pb: Problem) -> csc_matrix:
             for _ in range(3):
                 rows.append((r, frame_cols(k) + frame_cols(k + 1) + gyro_bias))
                 r += 1
-    s0 = _sway_col(pb)
+    s0 = extra.get("sway", 0)
     if pb.nh is not None:
         for k in range(n - 1):
             for c in range(2):
@@ -844,6 +907,9 @@ def sparsity(pb: Problem) -> csc_matrix:
             rows.append((r, [c, c + 2]))
             r += 1
         rows.append((r, [s0 + 2 * n]))
+        r += 1
+    if pb.ground is not None:
+        rows.append((r, [extra["cloud_pitch"]]))
         r += 1
     ii = np.concatenate([np.full(len(cols), i) for i, cols in rows])
     jj = np.concatenate([np.asarray(cols) for _, cols in rows])
@@ -1362,7 +1428,7 @@ def _velocity_steps(
     displacement it gives, projected on the solution's own lateral axis, so the INS's
     heading does not enter (its direction at a slow train's speed is off by tenths of a
     degree); its error is the velocity's own, millimetres a second. Over a short run the
-    body's sway has a mean lateral velocity that the rail motion's steps take as zero (a
+    body's sway has a mean lateral velocity that only the sway states bound (a
     6 mm sway at 0.7 Hz moves at up to 26 mm/s); the INS velocity sees it. Sigma: the
     INSSTDEV velocity stdev the INS reports (median per axis, within ``ins_v_bounds``),
     else the bounds' upper end; the variance factors then correct it from the residuals.
@@ -1779,7 +1845,11 @@ def _frame_period(pb: Problem) -> int:
 
 
 def _column_groups(
-    n: int, n_knots: int, period: int = 3, n_acc_knots: int = 0, sway: bool = False
+    n: int,
+    n_knots: int,
+    period: int = 3,
+    n_acc_knots: int = 0,
+    extra: dict[str, int] | None = None,
 ) -> list[NDArray[np.int64]]:
     """Columns that share no residual row (finite differences in one evaluation each).
 
@@ -1791,7 +1861,8 @@ def _column_groups(
     accelerometer bias knots (only accelerometer rows touch them) join the INS bias
     knots' groups of the same phase. The sway offsets (only rail-motion rows and their
     priors touch them) of frames 2 apart go together, per component, beside the last four
-    misalignment columns; the bogie offset beside the first.
+    misalignment columns; the bogie offset beside the first, the cloud's pitch beside the
+    third (``extra``: :func:`_extra_cols`).
     """
     groups = []
     for phase in range(period):
@@ -1801,13 +1872,16 @@ def _column_groups(
                 groups.append(6 * frames + comp)
     gb = _gyro_bias_col(n, n_knots)
     a0 = _acc_bias_col(n, n_knots)
-    s0 = a0 + 3 * n_acc_knots
-    extra: list[list[int]] = [[gb], [gb + 1], [gb + 2], [], [], [], []]
-    if sway:
-        extra[0].append(s0 + 2 * n)
+    extra = extra or {}
+    beside: list[list[int]] = [[gb], [gb + 1], [gb + 2], [], [], [], []]
+    if "sway" in extra:
+        s0 = extra["sway"]
+        beside[0].append(extra["bogie"])
         for i, (phase, comp) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
-            extra[3 + i] += list(s0 + 2 * np.arange(phase, n, 2) + comp)
-    groups.extend(np.array([6 * n + j, *extra[j]], dtype=np.int64) for j in range(7))
+            beside[3 + i] += list(s0 + 2 * np.arange(phase, n, 2) + comp)
+    if "cloud_pitch" in extra:
+        beside[2].append(extra["cloud_pitch"])
+    groups.extend(np.array([6 * n + j, *beside[j]], dtype=np.int64) for j in range(7))
     for phase in range(3):
         for comp in range(6):
             knots = np.arange(phase, n_knots, 3)
@@ -1827,9 +1901,7 @@ FD_STEP = 1e-5
 
 def _groups(pb: Problem) -> list[NDArray[np.int64]]:
     """:func:`_column_groups` of ``pb``."""
-    return _column_groups(
-        pb.n, pb.n_knots, _frame_period(pb), pb.n_acc_knots, sway=pb.nh is not None
-    )
+    return _column_groups(pb.n, pb.n_knots, _frame_period(pb), pb.n_acc_knots, _extra_cols(pb))
 
 
 def jacobian(x: F64, r0: F64, pb: Problem, S: csc_matrix, groups: list) -> csc_matrix:
@@ -1905,8 +1977,7 @@ def solve(pb: Problem, x0: F64 | None = None, max_iter: int = 8) -> F64:
     The problem is nearly linear (small rotation corrections), so a few iterations converge;
     a small Levenberg damping keeps the unobservable directions at their priors.
     """
-    n_x = _n_params(pb.n, pb.n_knots, pb.n_acc_knots, pb.nh is not None)
-    x = np.zeros(n_x) if x0 is None else x0.copy()
+    x = np.zeros(n_params(pb)) if x0 is None else x0.copy()
     S = _cached_sparsity(pb)
     groups = _groups(pb)
     c = pb.sig.huber
