@@ -22,15 +22,20 @@ from worker.preparation.localization.fused import (
 )
 
 
-@pytest.fixture(scope="module")
-def short_switch(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def _switch(tmp_path_factory: pytest.TempPathFactory, frames: int) -> Path:
+    """A sparse synthetic switch sequence (hard INS, no cameras) of ``frames`` frames."""
     from worker.synth.generator import SynthConfig, generate
 
     cfg = SynthConfig(
-        scene="switch", frames=12, scale=0.05, seed=0, lidar_density=0.3, ins_profile="hard",
-        cameras=(),
+        scene="switch", frames=frames, scale=0.05, seed=0, lidar_density=0.3,
+        ins_profile="hard", cameras=(),
     )  # fmt: skip
-    return generate(tmp_path_factory.mktemp("switch") / "seq", cfg).folder
+    return generate(tmp_path_factory.mktemp(f"switch{frames}") / "seq", cfg).folder
+
+
+@pytest.fixture(scope="module")
+def short_switch(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _switch(tmp_path_factory, 12)
 
 
 def _truth(folder: Path, times: np.ndarray) -> np.ndarray:
@@ -148,13 +153,7 @@ def test_a_significant_cloud_pitch_is_taken_out_of_every_lidar_step(
 
 @pytest.fixture(scope="module")
 def switch_30(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from worker.synth.generator import SynthConfig, generate
-
-    cfg = SynthConfig(
-        scene="switch", frames=30, scale=0.05, seed=0, lidar_density=0.3, ins_profile="hard",
-        cameras=(),
-    )  # fmt: skip
-    return generate(tmp_path_factory.mktemp("switch30") / "seq", cfg).folder
+    return _switch(tmp_path_factory, 30)
 
 
 def test_a_pitched_cloud_is_estimated_with_the_poses_not_followed(switch_30: Path) -> None:
