@@ -266,7 +266,7 @@ class Sigmas:
     gyro_bias: float = 5.0 * DEG / 3600.0
     #: A rail vehicle's base moves along its own axis (:func:`_rail_motion`): frame k + 1's
     #: lateral position in frame k is the chord of the turn between them plus the turn
-    #: times the base's distance ahead of the bogies' midpoint (estimated), plus the
+    #: times the base's distance ahead of the bogies' midpoint (a state), plus the
     #: change of the body's sway (per-frame offset states), within this sigma per step
     #: (m): what the rails' irregularities and the model's linearisation leave.
     #: The option ``fused_rail_motion: false`` turns it off.
@@ -1303,7 +1303,7 @@ def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
     except for the chord of a turn, d times the turn for a base at distance d ahead of the
     midpoint of its two bogies (in a curve of radius r the body turns about the curve's
     centre; a point d ahead of the bogies' midpoint moves at d / r to the body's axis; d
-    is estimated, with a prior, where the track turns) and the change of the body's sway
+    a state with the prior ``Sigmas.bogie_offset``) and the change of the body's sway
     on its suspension (per-frame offset states, bounded, changing at a bounded rate).
 
     Returns w (n-1, 2) 1/sigma of each step's lateral and vertical rows and sway_step
