@@ -2432,6 +2432,8 @@ class FusedStrategy:
             acc = np.mean(_acc_bias_knots_of(x, pb), axis=0) / 9.80665e-3
             for axis, b in zip(("along", "lateral", "vertical"), acc, strict=True):
                 health.metrics[f"fused_accel_bias_{axis}_mg"] = float(b)
+        if "cloud_pitch" in _extra_cols(pb):
+            health.metrics["fused_cloud_pitch_mrad"] = 1000.0 * _cloud_pitch_of(x, pb)
         notes = self._observability(inp, pb, health)
         info = information(pb, x)
         health.metrics["fused_variance_factor_global"] = info.scale
