@@ -1,7 +1,9 @@
 """fused's INS velocity steps: each step's displacement along the track and sideways. The
 true poses of a synthetic sequence meet the sideways component within its sigma, and a
 lateral drift of a centimetre a second (what the rail motion's steps cannot tell from the
-body's sway over a short run) puts every step two sigmas further off, sideways only."""
+body's sway over a short run) puts every step two sigmas further off, sideways only. An
+INS 8 m ahead of the base moves sideways in a curve by its lever's turn: the true poses
+meet its velocity with the true lever, not without."""
 
 from __future__ import annotations
 
@@ -32,9 +34,26 @@ def short_curve(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )  # fmt: skip
 
 
-def _velocity_residuals(folder: Path, lateral_drift_mps: float) -> np.ndarray:
+#: An INS this far ahead of the base (m): on the curve's 0.44 deg over 3 s its lever turns
+#: at 20 mm/s sideways, four sigmas of the good profile's velocity.
+LEVER_M = 8.0
+
+
+@pytest.fixture(scope="module")
+def curve_lever(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return synth_sequence(
+        tmp_path_factory.mktemp("curve_lever"), "seq", scene="tight_curve", frames=30,
+        scale=0.05, seed=3, lidar_density=0.3, ins_profile="good", cameras=(),
+        ins_overrides={"lever_arm_m": (LEVER_M, 0.0, 0.0)},
+    )  # fmt: skip
+
+
+def _velocity_residuals(
+    folder: Path, lateral_drift_mps: float, lever: tuple[float, float, float] = (0.0, 0.0, 0.0)
+) -> np.ndarray:
     """(S, 2) the normalised INS velocity residuals (along, sideways) at the true poses,
-    each frame moved sideways by ``lateral_drift_mps`` times its time (its own left axis)."""
+    each frame moved sideways by ``lateral_drift_mps`` times its time (its own left axis),
+    with the lever arm state at ``lever`` (m, base axes)."""
     inp = true_ego_input(folder)
     pb = build_problem(inp, Health(), Sigmas())
     assert pb.vel is not None
@@ -49,6 +68,7 @@ def _velocity_residuals(folder: Path, lateral_drift_mps: float) -> np.ndarray:
     xp = x[: 6 * n].reshape(n, 6)
     xp[:, :3] = Rotation.from_matrix(T[:, :3, :3] @ np.swapaxes(pb.R0, 1, 2)).as_rotvec()
     xp[:, 3:] = p - pb.p0
+    x[6 * n : 6 * n + 3] = lever
     return measurement_blocks(pb, x)["ins_v"]
 
 
@@ -69,3 +89,11 @@ def test_a_lateral_drift_of_a_centimetre_a_second_is_seen_sideways_only(
     assert np.allclose(shift, shift[0], atol=0.2) and abs(abs(shift[0]) - 2.0) < 0.2, shift
     # along the track nothing moved
     assert np.max(np.abs(drift[:, 0] - still[:, 0])) < 0.05
+
+
+def test_the_lever_arm_turns_with_the_train(curve_lever: Path) -> None:
+    with_lever = _velocity_residuals(curve_lever, 0.0, (LEVER_M, 0.0, 0.0))
+    without = _velocity_residuals(curve_lever, 0.0)
+    assert np.sqrt(np.mean(with_lever[:, 1] ** 2)) < 1.5, with_lever
+    # the curve turns the lever by its heading rate: far outside the 5 mm/s sigma
+    assert np.sqrt(np.mean(without[:, 1] ** 2)) > 3.0, without
