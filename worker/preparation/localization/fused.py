@@ -66,6 +66,7 @@ from geometry.pose_uncertainty import PoseInformation
 from geometry.poses import InsToLidar, PoseTrack
 from worker.preparation.localization.accelerometer import accel_block
 from worker.preparation.localization.base import Health, LocalizationInput, LocalizationResult
+from worker.preparation.localization.body_sway import oscillator_prior
 from worker.preparation.localization.common import (
     InsFrames,
     ins_at_frames,
@@ -277,13 +278,18 @@ class Sigmas:
     #: within this sigma per step (m); 0 turns it off.
     rail_motion_vert: float = 0.001
     #: The body's sway and bounce on its suspension: per-frame offsets (lateral,
-    #: vertical, m) from the rail-following path with this prior (a few mm; the wheels'
-    #: play in the gauge adds as much sideways) ...
-    sway: tuple[float, float] = (0.006, 0.006)
-    #: ... that change at up to this rate (m/s, 1 sigma: 6 mm at 0.7 Hz moves at up to
-    #: 26 mm/s, 4 mm at 1.3 Hz at 33 mm/s): a sway's offset cannot run away as
-    #: independent steps would let it.
-    sway_rate: tuple[float, float] = (0.03, 0.03)
+    #: vertical, m) from the rail-following path and their rates, a damped oscillator per
+    #: axis (:mod:`.body_sway`) with this stationary sd (a few mm; the wheels' play in the
+    #: gauge adds as much sideways) ...
+    sway: tuple[float, float] = (0.005, 0.005)
+    #: ... this natural frequency (Hz; a carbody's lateral and bounce modes are near
+    #: 0.5-1.5 Hz) ...
+    sway_hz: tuple[float, float] = (1.0, 1.0)
+    #: ... and this damping ratio (well damped: the prior spreads over a band of
+    #: frequencies, not one). The offset then changes by up to 7 mm (1 sigma) within half a
+    #: second, as a smooth sway does, where independent per-frame steps bounded by an
+    #: offset prior allowed 4 mm.
+    sway_damping: float = 0.5
     #: Prior sigma of the base's distance ahead of the bogies' midpoint (m; a state of
     #: the solve, at 0 a priori). Pinned by default: free (10 m), it traded against the
     #: turn where the steps are short, and on a slow curve whose odometry misses the turn
@@ -299,6 +305,17 @@ class Sigmas:
     #: not significant at 0.8 +- 0.45 mrad on station-f100-d1-osdar23-s11 (a 50 mm climb
     #: over 60 m, 6 px).
     cloud_pitch: float = 1e-3
+    #: Prior sigma (rad per metre) of the ground pairs' roll drift, a state of the solve:
+    #: where the merged cloud's lidars disagree by hundredths of a degree (OSDaR23's
+    #: clouds are merged from six lidars, each with its own calibration), the ground a
+    #: pair's two frames share comes from different lidars in each, and the pair's roll is
+    #: off in proportion to the distance between its frames (straight_sparse-f60-d0.3-
+    #: osdar23-s11: +6.5 mdeg a 1.1 m step, +68 over ten; none with the lidars merged
+    #: without error). The gyros tell it from the track's own roll (a cant). The pairs'
+    #: pitch keeps no such state: freed, it traded against the odometry's and the rail
+    #: motion's pitch in curves (tight_curve-f20-d1-osdar23-s11: anchor error 1.09 ->
+    #: 2.91 px). 0 turns the state off.
+    ground_tilt: float = 2e-4
     #: The INS's accelerometers (:mod:`.accelerometer`): the second differences of the
     #: positions they see, sigma (along, lateral, vertical, m) per stencil: a
     #: tactical-grade accelerometer's velocity noise over 0.1 s is a few tenths of a
@@ -498,16 +515,21 @@ def _n_params(n: int, n_knots: int, n_acc_knots: int = 0) -> int:
 def _extra_cols(pb: Problem) -> dict[str, int]:
     """First column of each block after :func:`_n_params`'s, and "end" (the length of the
     parameter vector): with the rail motion the body's sway offsets ("sway": frame k's
-    lateral, vertical at + 2 k, + 2 k + 1) and the base's distance ahead of the bogies'
-    midpoint ("bogie"); with the ground pairs the cloud's residual pitch ("cloud_pitch")."""
+    lateral, vertical at + 2 k, + 2 k + 1), their rates ("sway_rate", the same layout)
+    and the base's distance ahead of the bogies' midpoint ("bogie"); with the ground pairs
+    the cloud's residual pitch ("cloud_pitch") and the pairs' roll drift per metre
+    ("ground_tilt")."""
     i = _n_params(pb.n, pb.n_knots, pb.n_acc_knots)
     out = {}
     if pb.nh is not None:
-        out["sway"], out["bogie"] = i, i + 2 * pb.n
-        i += 2 * pb.n + 1
+        out["sway"], out["sway_rate"], out["bogie"] = i, i + 2 * pb.n, i + 4 * pb.n
+        i += 4 * pb.n + 1
     if pb.ground is not None:
         out["cloud_pitch"] = i
         i += 1
+        if pb.sig.ground_tilt > 0:
+            out["ground_tilt"] = i
+            i += 1
     out["end"] = i
     return out
 
@@ -525,9 +547,22 @@ def _sway_of(x: F64, pb: Problem) -> tuple[F64, float]:
     return x[i0 : i0 + 2 * pb.n].reshape(pb.n, 2), float(x[cols["bogie"]])
 
 
+def _sway_rate_of(x: F64, pb: Problem) -> F64:
+    """(n, 2) the rates of the body's sway offsets (lateral, vertical, m/s)."""
+    i0 = _extra_cols(pb)["sway_rate"]
+    return x[i0 : i0 + 2 * pb.n].reshape(pb.n, 2)
+
+
 def _cloud_pitch_of(x: F64, pb: Problem) -> float:
     """The merged cloud's residual pitch against the base (rad; 0 without ground pairs)."""
     i = _extra_cols(pb).get("cloud_pitch")
+    return 0.0 if i is None else float(x[i])
+
+
+def _ground_tilt_of(x: F64, pb: Problem) -> float:
+    """The ground pairs' roll drift per metre between their frames (rad/m; 0 without the
+    state)."""
+    i = _extra_cols(pb).get("ground_tilt")
     return 0.0 if i is None else float(x[i])
 
 
@@ -714,6 +749,7 @@ def _ground_residuals(x: F64, pb: Problem, R: F64, p: F64) -> F64:
     t = _tilted(g["T_k_j"][:, :3, 3], _cloud_pitch_of(x, pb), B_t[:, 0])
     E_t = np.einsum("nij,nj->ni", MRt, B_t - t)
     E_r = _log_rotation(MRt @ np.swapaxes(Rk, 1, 2) @ Rj)
+    E_r[:, 0] += B_t[:, 0] * _ground_tilt_of(x, pb)  # measured = true + drift
     gr = np.column_stack([E_t[:, 2], E_r[:, 0], E_r[:, 1]]) * g["w"] / pb.s("ground")
     return gr.ravel()
 
@@ -773,11 +809,14 @@ def _prior_blocks(x: F64, pb: Problem) -> F64:
     out.append((np.diff(knots, axis=0) / pb.bias_step_sigma).ravel())
     if pb.nh is not None:
         o, d = _sway_of(x, pb)
-        out.append((o / np.asarray(sig.sway)).ravel())
-        out.append((np.diff(o, axis=0) / pb.nh["sway_step"]).ravel())
+        v = _sway_rate_of(x, pb)
+        for c, prior in enumerate(pb.nh["sway"]):  # first frame's two rows, each step's two
+            out.append(prior.residuals(np.column_stack([o[:, c], v[:, c]])))
         out.append(np.array([d / sig.bogie_offset]))
     if pb.ground is not None:
         out.append(np.array([_cloud_pitch_of(x, pb) / sig.cloud_pitch]))
+        if sig.ground_tilt > 0:
+            out.append(np.array([_ground_tilt_of(x, pb) / sig.ground_tilt]))
     return np.concatenate(out)
 
 
@@ -789,6 +828,7 @@ def _cached_sparsity(pb: Problem) -> csc_matrix:
         pb.n_knots,
         pb.rail is None,
         pb.ground is None,
+        pb.sig.ground_tilt > 0,
         pb.vel is None,
         None if pb.odo_pairs is None else len(pb.odo_pairs["k"]),
         pb.gyro is None,
@@ -845,7 +885,10 @@ def sparsity(pb: Problem) -> csc_matrix:
     if pb.ground is not None:
         for k, j in zip(pb.ground["k"], pb.ground["j"], strict=True):
             for c in range(3):
-                tilt = [extra["cloud_pitch"]] if c == 0 else []
+                if c == 0:
+                    tilt = [extra["cloud_pitch"]]
+                else:  # roll with its drift
+                    tilt = [extra["ground_tilt"]] if c == 1 and "ground_tilt" in extra else []
                 rows.append((r, frame_cols(int(k)) + frame_cols(int(j)) + tilt))
                 r += 1
     if pb.vel is not None:  # with the lever arm
@@ -874,7 +917,7 @@ def sparsity(pb: Problem) -> csc_matrix:
         for k in range(n - 1):
             for c in range(2):
                 cols = frame_cols(k) + frame_cols(k + 1) + [s0 + 2 * k + c, s0 + 2 * k + 2 + c]
-                rows.append((r, cols + ([s0 + 2 * n] if c == 0 else [])))
+                rows.append((r, cols + ([s0 + 4 * n] if c == 0 else [])))
                 r += 1
     if pb.accel is not None:
         for k in range(n - 2):
@@ -917,18 +960,25 @@ def sparsity(pb: Problem) -> csc_matrix:
         for c in range(6):
             rows.append((r, [knot_cols(j)[c], knot_cols(j + 1)[c]]))
             r += 1
-    if pb.nh is not None:  # sway offsets, their changes, the bogie offset
-        for c in range(s0, s0 + 2 * n):
-            rows.append((r, [c]))
-            r += 1
-        for c in range(s0, s0 + 2 * (n - 1)):
-            rows.append((r, [c, c + 2]))
-            r += 1
-        rows.append((r, [s0 + 2 * n]))
+    if pb.nh is not None:  # the sway oscillators (per axis: frame 0, each step), bogie
+        v0 = s0 + 2 * n
+        for c in range(2):
+            rows.append((r, [s0 + c]))
+            rows.append((r + 1, [v0 + c]))
+            r += 2
+            for k in range(n - 1):
+                cols = [s0 + 2 * k + c, s0 + 2 * k + 2 + c, v0 + 2 * k + c, v0 + 2 * k + 2 + c]
+                rows.append((r, cols))
+                rows.append((r + 1, cols))
+                r += 2
+        rows.append((r, [s0 + 4 * n]))
         r += 1
     if pb.ground is not None:
         rows.append((r, [extra["cloud_pitch"]]))
         r += 1
+        if "ground_tilt" in extra:
+            rows.append((r, [extra["ground_tilt"]]))
+            r += 1
     ii = np.concatenate([np.full(len(cols), i) for i, cols in rows])
     jj = np.concatenate([np.asarray(cols) for _, cols in rows])
     return coo_matrix((np.ones(len(ii), dtype=int), (ii, jj)), shape=(r, m_cols)).tocsc()
@@ -1320,14 +1370,15 @@ def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
     a state with the prior ``Sigmas.bogie_offset``) and the change of the body's sway
     on its suspension (per-frame offset states, bounded, changing at a bounded rate).
 
-    Returns w (n-1, 2) 1/sigma of each step's lateral and vertical rows and sway_step
-    (n-1, 2) the sigma of the sway's change over each step (m)."""
+    Returns w (n-1, 2) 1/sigma of each step's lateral and vertical rows and sway, the
+    :class:`~.body_sway.SwayPrior` of the lateral and the vertical offsets."""
     if n < 2 or not (sig.rail_motion and inp.options.get("fused_rail_motion", True)):
         return None
     w_vert = 1.0 / sig.rail_motion_vert if sig.rail_motion_vert > 0 else 0.0
     w = np.column_stack([np.full(n - 1, 1.0 / sig.rail_motion_lat), np.full(n - 1, w_vert)])
     dt = np.maximum(np.diff(inp.times), 1e-3)
-    return {"w": w, "sway_step": dt[:, None] * np.asarray(sig.sway_rate)[None, :]}
+    sway = [oscillator_prior(dt, sig.sway[c], sig.sway_hz[c], sig.sway_damping) for c in range(2)]
+    return {"w": w, "sway": sway}
 
 
 def _rail_motion_residuals(pb: Problem, R: F64, p: F64, x: F64) -> F64:
@@ -1895,10 +1946,17 @@ def _column_groups(
     if "sway" in extra:
         s0 = extra["sway"]
         beside[0].append(extra["bogie"])
+        v0 = extra["sway_rate"]
         for i, (phase, comp) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
             beside[3 + i] += list(s0 + 2 * np.arange(phase, n, 2) + comp)
+            # the rates, which only the sway's prior rows touch (one axis each), beside the
+            # columns no such row touches: the lever, the gyro bias, bogie, cloud pitch,
+            # and the other axis' offsets
+            beside[i] += list(v0 + 2 * np.arange(phase, n, 2) + comp)
     if "cloud_pitch" in extra:
         beside[2].append(extra["cloud_pitch"])
+    if "ground_tilt" in extra:  # ground rows only, as the cloud's pitch (beside 2)
+        beside[0].append(extra["ground_tilt"])
     groups.extend(np.array([6 * n + j, *beside[j]], dtype=np.int64) for j in range(7))
     for phase in range(3):
         for comp in range(6):
@@ -2448,6 +2506,9 @@ class FusedStrategy:
                 health.metrics[f"fused_accel_bias_{axis}_mg"] = float(b)
         if "cloud_pitch" in _extra_cols(pb):
             health.metrics["fused_cloud_pitch_mrad"] = 1000.0 * _cloud_pitch_of(x, pb)
+        if "ground_tilt" in _extra_cols(pb):
+            drift = 1e3 * math.degrees(_ground_tilt_of(x, pb))
+            health.metrics["fused_ground_tilt_roll_mdeg_per_m"] = drift
         notes = self._observability(inp, pb, health)
         info = information(pb, x)
         health.metrics["fused_variance_factor_global"] = info.scale
