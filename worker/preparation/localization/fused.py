@@ -1368,7 +1368,8 @@ def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
     midpoint of its two bogies (in a curve of radius r the body turns about the curve's
     centre; a point d ahead of the bogies' midpoint moves at d / r to the body's axis; d
     a state with the prior ``Sigmas.bogie_offset``) and the change of the body's sway
-    on its suspension (per-frame offset states, bounded, changing at a bounded rate).
+    on its suspension (per-frame offset and rate states under a damped oscillator's
+    prior, :mod:`.body_sway`).
 
     Returns w (n-1, 2) 1/sigma of each step's lateral and vertical rows and sway, the
     :class:`~.body_sway.SwayPrior` of the lateral and the vertical offsets."""
@@ -1930,8 +1931,9 @@ def _column_groups(
     accelerometer bias knots (only accelerometer rows touch them) join the INS bias
     knots' groups of the same phase. The sway offsets (only rail-motion rows and their
     priors touch them) of frames 2 apart go together, per component, beside the last four
-    misalignment columns; the bogie offset beside the first, the cloud's pitch beside the
-    third (``extra``: :func:`_extra_cols`).
+    misalignment columns, their rates (only the priors of one axis each) the same way
+    beside the first four; the bogie offset and the ground pairs' roll drift beside the
+    first, the cloud's pitch beside the third (``extra``: :func:`_extra_cols`).
     """
     groups = []
     for phase in range(period):
