@@ -1,8 +1,8 @@
-"""fused's ground-pair tilt drift: where the merged cloud's lidars disagree (the osdar23
+"""fused's ground-pair roll drift: where the merged cloud's lidars disagree (the osdar23
 profile merges its lidars with calibration errors, as real clouds are), the ground two
-frames share comes from different lidars in each, and the pairs' roll and pitch are off
-in proportion to the distance between the frames. The drift is a state of the solve; the
-gyros tell it from the track's own roll and pitch."""
+frames share comes from different lidars in each, and the pairs' roll is off in
+proportion to the distance between the frames. The drift is a state of the solve; the
+gyros tell it from the track's own roll."""
 
 from __future__ import annotations
 
