@@ -30,6 +30,11 @@ def true_poses(folder: Path) -> PoseTrack:
     return PoseTrack.from_csv(folder / "ground_truth" / "poses.csv")
 
 
+def true_poses_at(folder: Path, times: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) the true T_world_base at ``times`` (n,), from the dense ground truth."""
+    return PoseTrack.from_csv(folder / "ground_truth" / "poses_dense.csv").interpolate(times)
+
+
 def landmarks(folder: Path, kind: str | None = None) -> list[dict]:
     lms = json.loads((folder / "ground_truth" / "landmarks.json").read_text())
     return [lm for lm in lms if kind is None or lm["kind"] == kind]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from geometry.poses import R_INS_BASE_NOMINAL, PoseTrack
+from geometry.poses import R_INS_BASE_NOMINAL
 from tests.synth_fixtures import true_ego_input, with_corrimu_added
 from worker.preparation.localization.accelerometer import BRIDGE_SIGMA_FACTOR, accel_differences
 from worker.preparation.localization.base import Health
@@ -145,10 +145,6 @@ def sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
         ins_profile="hard", cameras=(),
     )  # fmt: skip
     return generate(tmp_path_factory.mktemp("accel") / "seq", cfg).folder
-
-
-def _truth(folder: Path, times: np.ndarray) -> np.ndarray:
-    return PoseTrack.from_csv(folder / "ground_truth/poses_dense.csv").interpolate(times)
 
 
 def test_the_accelerometers_of_a_synthetic_sequence_see_the_true_accelerations(

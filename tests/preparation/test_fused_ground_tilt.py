@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from geometry.poses import PoseTrack
+from tests.synth_fixtures import true_poses_at
 from worker.osdar.sequence import Sequence
 from worker.preparation.config import PrepareConfig
 from worker.preparation.localization.base import Health, LocalizationInput
@@ -33,10 +33,6 @@ def merged_with_errors(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, 
     return folder, localization_setup(Sequence.open(folder), PrepareConfig()).inp
 
 
-def _truth(folder: Path, times: np.ndarray) -> np.ndarray:
-    return PoseTrack.from_csv(folder / "ground_truth/poses_dense.csv").interpolate(times)
-
-
 def _relative_tilt_error_mdeg(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
     """(2,) the largest roll and pitch error of frame k relative to frame 0 (mdeg)."""
     rel_e = np.linalg.inv(T_est[0]) @ T_est
@@ -47,7 +43,7 @@ def _relative_tilt_error_mdeg(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarr
 
 def test_the_ground_pairs_drift_and_the_solve_measures_it(merged_with_errors) -> None:
     folder, inp = merged_with_errors
-    T = _truth(folder, inp.times)
+    T = true_poses_at(folder, inp.times)
     g = _ground_constraints(inp, Health(), Sigmas())
     assert g is not None
     T_k_j = np.linalg.inv(T[g["k"]]) @ T[g["j"]]

@@ -12,7 +12,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from geometry.poses import PoseTrack
-from tests.synth_fixtures import true_ego_input
+from tests.synth_fixtures import true_ego_input, true_poses_at
 from worker.preparation.localization.base import Health
 from worker.preparation.localization.fused import (
     FusedStrategy,
@@ -38,10 +38,6 @@ def short_switch(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _switch(tmp_path_factory, 12)
 
 
-def _truth(folder: Path, times: np.ndarray) -> np.ndarray:
-    return PoseTrack.from_csv(folder / "ground_truth/poses_dense.csv").interpolate(times)
-
-
 def _with_poses_and_sway(pb, T: np.ndarray, sway: np.ndarray, d: float = 0.0) -> np.ndarray:
     """A parameter vector with poses T (n, 4, 4), sway offsets (n, 2) and bogie offset d."""
     from worker.preparation.localization.fused import _extra_cols, n_params
@@ -63,7 +59,7 @@ def test_true_motion_keeps_to_the_rails_with_the_true_sway(short_switch: Path) -
     inp = true_ego_input(short_switch)
     pb = build_problem(inp, Health(), Sigmas())
     assert pb.nh is not None and inp.ego is not None
-    T = _truth(short_switch, inp.times)
+    T = true_poses_at(short_switch, inp.times)
     proj = inp.ego.project(T[:, :3, 3])
     sway = np.column_stack([proj.lateral, proj.vertical - np.mean(proj.vertical)])
     R, p = T[:, :3, :3], T[:, :3, 3]
@@ -76,7 +72,7 @@ def test_true_motion_keeps_to_the_rails_with_the_true_sway(short_switch: Path) -
 
 def _lateral_step_errors_mm(track: PoseTrack, folder: Path, times: np.ndarray) -> np.ndarray:
     T = track.interpolate(times)
-    G = _truth(folder, times)
+    G = true_poses_at(folder, times)
     est = np.einsum("nji,nj->ni", T[:-1, :3, :3], T[1:, :3, 3] - T[:-1, :3, 3])
     tru = np.einsum("nji,nj->ni", G[:-1, :3, :3], G[1:, :3, 3] - G[:-1, :3, 3])
     return 1000.0 * (est[:, 1] - tru[:, 1])

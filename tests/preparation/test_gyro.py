@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from geometry.poses import R_INS_BASE_NOMINAL, PoseTrack
-from tests.synth_fixtures import true_ego_input, with_corrimu_added
+from tests.synth_fixtures import true_ego_input, true_poses_at, with_corrimu_added
 from worker.preparation.localization.base import Health
 from worker.preparation.localization.fused import FusedStrategy
 from worker.preparation.localization.gyro import (
@@ -180,7 +180,7 @@ def sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _truth_steps(folder: Path, times: np.ndarray) -> np.ndarray:
-    gt = PoseTrack.from_csv(folder / "ground_truth/poses_dense.csv").interpolate(times)
+    gt = true_poses_at(folder, times)
     return np.swapaxes(gt[:-1, :3, :3], 1, 2) @ gt[1:, :3, :3]
 
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from geometry.poses import PoseTrack
+from tests.synth_fixtures import true_poses_at
 from worker.osdar.sequence import Sequence
 from worker.preparation.kiss_process import LaggedKissICP, kiss_config
 from worker.preparation.localization import make_input, run_strategy
@@ -50,11 +50,6 @@ def slow_scene(tmp_path_factory: pytest.TempPathFactory, request: pytest.Fixture
     return _generate(tmp_path_factory.mktemp("slow"), str(request.param))
 
 
-def _truth(folder: Path, times: F64) -> F64:
-    """(n, 4, 4) true T_world_base at ``times``."""
-    return PoseTrack.from_csv(folder / "ground_truth/poses_dense.csv").interpolate(times)
-
-
 def _rotation_errors_deg(T_est: F64, T_true: F64, lag: int) -> F64:
     """(n - lag, 3) rotation vector (deg) of the relative rotation error over ``lag``."""
     a = np.swapaxes(T_est[:-lag, :3, :3], 1, 2) @ T_est[lag:, :3, :3]
@@ -65,7 +60,7 @@ def _rotation_errors_deg(T_est: F64, T_true: F64, lag: int) -> F64:
 def _odometry_T(folder: Path, **options: object) -> tuple[F64, F64]:
     inp = make_input(Sequence.open(folder), options=dict(options))
     res = run_strategy("odometry", inp)
-    return res.track.T, _truth(folder, np.asarray(inp.times, dtype=np.float64))
+    return res.track.T, true_poses_at(folder, np.asarray(inp.times, dtype=np.float64))
 
 
 def test_slow_sparse_heading_does_not_drift(slow_scene: Path) -> None:
