@@ -1,8 +1,9 @@
-"""fused's ground-pair roll drift: where the merged cloud's lidars disagree (the osdar23
+"""fused's ground-pair drifts: where the merged cloud's lidars disagree (the osdar23
 profile merges its lidars with calibration errors, as real clouds are), the ground two
 frames share comes from different lidars in each, and the pairs' roll is off in
-proportion to the distance between the frames. The drift is a state of the solve; the
-gyros tell it from the track's own roll."""
+proportion to the distance between the frames; the longer pairs' pitch is too. Each
+drift is a state of the solve; the gyros tell the roll drift from the track's own roll,
+the lag-1 pairs and the gyros the pitch drift from the track's grade."""
 
 from __future__ import annotations
 
@@ -64,3 +65,32 @@ def test_the_ground_pairs_drift_and_the_solve_measures_it(merged_with_errors) ->
     worst_0 = _relative_tilt_error_mdeg(res_0.track.interpolate(inp.times), T)
     assert worst_0[0] > 4.0 * worst[0], (worst, worst_0)
     assert "fused_ground_tilt_roll_mdeg_per_m" not in res_0.health.metrics
+
+
+def test_the_longer_pairs_pitch_drift_is_a_state_of_its_own(merged_with_errors) -> None:
+    """The lag-10 pairs' pitch is off in proportion to the distance between their frames
+    (here -0.40 mdeg/m against the lag-1 pairs' -0.08): the state takes it, and the
+    lag-1 pairs and the gyros keep the pitch over the sequence."""
+    folder, inp = merged_with_errors
+    T = true_poses_at(folder, inp.times)
+    g = _ground_constraints(inp, Health(), Sigmas())
+    assert g is not None
+    lag = g["j"] - g["k"]
+    long = g["long"] > 0
+    assert np.array_equal(long, lag > lag.min())
+    T_k_j = np.linalg.inv(T[g["k"]]) @ T[g["j"]]
+    err = Rotation.from_matrix(
+        np.swapaxes(T_k_j[:, :3, :3], 1, 2) @ g["T_k_j"][:, :3, :3]
+    ).as_rotvec()
+    d = T_k_j[:, 0, 3]
+    true_drift = 1e3 * np.degrees(np.sum(err[long, 1] * d[long]) / np.sum(d[long] ** 2))
+    assert abs(true_drift) > 0.2  # mdeg/m: 4 mdeg over a 20 m lag-10 pair
+    res = FusedStrategy(Sigmas()).run(inp)
+    est = res.health.metrics["fused_ground_pitch_drift_mdeg_per_m"]
+    assert est == pytest.approx(true_drift, abs=0.25 * abs(true_drift))
+    worst = _relative_tilt_error_mdeg(res.track.interpolate(inp.times), T)
+    assert worst[1] < 6.0, worst
+    res_0 = FusedStrategy(Sigmas(ground_pitch_drift=0.0)).run(inp)
+    worst_0 = _relative_tilt_error_mdeg(res_0.track.interpolate(inp.times), T)
+    assert worst_0[1] > 3.0 * worst[1], (worst, worst_0)
+    assert "fused_ground_pitch_drift_mdeg_per_m" not in res_0.health.metrics

@@ -316,6 +316,18 @@ class Sigmas:
     #: motion's pitch in curves (tight_curve-f20-d1-osdar23-s11: anchor error 1.09 ->
     #: 2.91 px). 0 turns the state off.
     ground_tilt: float = 2e-4
+    #: Prior sigma (rad per metre) of the pitch drift of the ground pairs longer than the
+    #: shortest lag (the lag-10 pairs), a state of the solve: their pitch is off in
+    #: proportion to the distance between their frames by more than the chain of lag-1
+    #: pairs over the same frames (straight_sparse-f60-d0.3-osdar23-s11: +9.7 mdeg a 20 m
+    #: pair against ten lag-1 pairs' +5.9; straight_sparse-f100-d0.3-hard-s11, merged
+    #: without error, +6.0 against +3.2), and the solve followed them (the pitch drifted
+    #: 49 mdeg over 59 frames there, anchor 6.2 px). With the state the lag-1 pairs and
+    #: the gyros hold the pitch rate while the lag-10 pairs keep telling its changes
+    #: (6.2 -> 2.9 px). The lag-1 pairs keep no such state: freed, a pitch drift of every
+    #: pair traded against the odometry's and the rail motion's pitch in curves (see
+    #: ``ground_tilt``). 0 turns it off.
+    ground_pitch_drift: float = 2e-4
     #: The INS's accelerometers (:mod:`.accelerometer`): the second differences of the
     #: positions they see, sigma (along, lateral, vertical, m) per stencil: a
     #: tactical-grade accelerometer's velocity noise over 0.1 s is a few tenths of a
@@ -530,6 +542,9 @@ def _extra_cols(pb: Problem) -> dict[str, int]:
         if pb.sig.ground_tilt > 0:
             out["ground_tilt"] = i
             i += 1
+        if pb.sig.ground_pitch_drift > 0:
+            out["ground_pitch"] = i
+            i += 1
     out["end"] = i
     return out
 
@@ -563,6 +578,13 @@ def _ground_tilt_of(x: F64, pb: Problem) -> float:
     """The ground pairs' roll drift per metre between their frames (rad/m; 0 without the
     state)."""
     i = _extra_cols(pb).get("ground_tilt")
+    return 0.0 if i is None else float(x[i])
+
+
+def _ground_pitch_drift_of(x: F64, pb: Problem) -> float:
+    """The longer ground pairs' pitch drift per metre between their frames (rad/m; 0
+    without the state)."""
+    i = _extra_cols(pb).get("ground_pitch")
     return 0.0 if i is None else float(x[i])
 
 
@@ -750,6 +772,7 @@ def _ground_residuals(x: F64, pb: Problem, R: F64, p: F64) -> F64:
     E_t = np.einsum("nij,nj->ni", MRt, B_t - t)
     E_r = _log_rotation(MRt @ np.swapaxes(Rk, 1, 2) @ Rj)
     E_r[:, 0] += B_t[:, 0] * _ground_tilt_of(x, pb)  # measured = true + drift
+    E_r[:, 1] += g["long"] * B_t[:, 0] * _ground_pitch_drift_of(x, pb)
     gr = np.column_stack([E_t[:, 2], E_r[:, 0], E_r[:, 1]]) * g["w"] / pb.s("ground")
     return gr.ravel()
 
@@ -817,6 +840,8 @@ def _prior_blocks(x: F64, pb: Problem) -> F64:
         out.append(np.array([_cloud_pitch_of(x, pb) / sig.cloud_pitch]))
         if sig.ground_tilt > 0:
             out.append(np.array([_ground_tilt_of(x, pb) / sig.ground_tilt]))
+        if sig.ground_pitch_drift > 0:
+            out.append(np.array([_ground_pitch_drift_of(x, pb) / sig.ground_pitch_drift]))
     return np.concatenate(out)
 
 
@@ -829,6 +854,7 @@ def _cached_sparsity(pb: Problem) -> csc_matrix:
         pb.rail is None,
         pb.ground is None,
         pb.sig.ground_tilt > 0,
+        pb.sig.ground_pitch_drift > 0,
         pb.vel is None,
         None if pb.odo_pairs is None else len(pb.odo_pairs["k"]),
         pb.gyro is None,
@@ -883,12 +909,14 @@ def sparsity(pb: Problem) -> csc_matrix:
                 rows.append((r, frame_cols(k)))
                 r += 1
     if pb.ground is not None:
-        for k, j in zip(pb.ground["k"], pb.ground["j"], strict=True):
+        for k, j, long in zip(pb.ground["k"], pb.ground["j"], pb.ground["long"], strict=True):
             for c in range(3):
                 if c == 0:
                     tilt = [extra["cloud_pitch"]]
-                else:  # roll with its drift
-                    tilt = [extra["ground_tilt"]] if c == 1 and "ground_tilt" in extra else []
+                elif c == 1:  # roll with its drift
+                    tilt = [extra["ground_tilt"]] if "ground_tilt" in extra else []
+                else:  # pitch, the longer pairs' with theirs
+                    tilt = [extra["ground_pitch"]] if long and "ground_pitch" in extra else []
                 rows.append((r, frame_cols(int(k)) + frame_cols(int(j)) + tilt))
                 r += 1
     if pb.vel is not None:  # with the lever arm
@@ -978,6 +1006,9 @@ def sparsity(pb: Problem) -> csc_matrix:
         r += 1
         if "ground_tilt" in extra:
             rows.append((r, [extra["ground_tilt"]]))
+            r += 1
+        if "ground_pitch" in extra:
+            rows.append((r, [extra["ground_pitch"]]))
             r += 1
     ii = np.concatenate([np.full(len(cols), i) for i, cols in rows])
     jj = np.concatenate([np.asarray(cols) for _, cols in rows])
@@ -1751,7 +1782,15 @@ def _ground_constraints(inp: LocalizationInput, health: Health, sig: Sigmas) -> 
             if est.significant:
                 pitch = est.rad
                 T_k_j = tilt_lidar_poses(T_k_j, pitch)
-    return {"k": k, "j": j, "T_k_j": T_k_j, "w": 1.0 / sigma, "pitch_offset": pitch}
+    long = (lag > lag.min()).astype(np.float64)
+    return {
+        "k": k,
+        "j": j,
+        "T_k_j": T_k_j,
+        "w": 1.0 / sigma,
+        "pitch_offset": pitch,
+        "long": long,
+    }
 
 
 def _bias_step_sigmas(
@@ -1959,6 +1998,8 @@ def _column_groups(
         beside[2].append(extra["cloud_pitch"])
     if "ground_tilt" in extra:  # ground rows only, as the cloud's pitch (beside 2)
         beside[0].append(extra["ground_tilt"])
+    if "ground_pitch" in extra:  # ground rows only, beside the gyro bias' second
+        beside[1].append(extra["ground_pitch"])
     groups.extend(np.array([6 * n + j, *beside[j]], dtype=np.int64) for j in range(7))
     for phase in range(3):
         for comp in range(6):
@@ -2511,6 +2552,9 @@ class FusedStrategy:
         if "ground_tilt" in _extra_cols(pb):
             drift = 1e3 * math.degrees(_ground_tilt_of(x, pb))
             health.metrics["fused_ground_tilt_roll_mdeg_per_m"] = drift
+        if "ground_pitch" in _extra_cols(pb):
+            drift = 1e3 * math.degrees(_ground_pitch_drift_of(x, pb))
+            health.metrics["fused_ground_pitch_drift_mdeg_per_m"] = drift
         notes = self._observability(inp, pb, health)
         info = information(pb, x)
         health.metrics["fused_variance_factor_global"] = info.scale
