@@ -380,3 +380,32 @@ def test_generator_merge_rotations_are_recovered(tmp_path_factory, frames, seed,
         if rot > GEN_ROT_DEG:
             misses[s] = round(rot, 4)
     assert not misses, misses
+
+
+@pytest.mark.parametrize(
+    ("split", "correction", "applied"),
+    [
+        ((0.015, 0.002), (0.06, 0.02), True),  # halves within the fixed bounds
+        ((0.023, 0.001), (0.06, 0.02), True),  # beyond them, within the correction
+        ((0.023, 0.001), (0.019, 0.02), False),  # beyond both: its own error dominates
+        ((0.010, 0.030), (0.06, 0.02), False),  # translations disagree beyond both
+        ((0.010, 0.015), (0.06, 0.02), True),  # beyond 1 cm, within the correction
+    ],
+)
+def test_halves_are_trusted_within_the_fixed_bounds_or_the_correction(
+    split: tuple[float, float], correction: tuple[float, float], applied: bool
+) -> None:
+    from worker.preparation.lidar_alignment import trust_reason
+
+    reason = trust_reason(2000, (1000, 1000), split, correction)
+    assert (reason == "") == applied, reason
+    if not applied:
+        assert "halves of the frames disagree" in reason, reason
+
+
+def test_trust_keeps_its_other_rules() -> None:
+    from worker.preparation.lidar_alignment import trust_reason
+
+    assert "overlap" in trust_reason(300, (150, 150), (0.01, 0.001), (0.06, 0.02))
+    assert "larger than a merge error" in trust_reason(2000, (1000, 1000), (0.3, 0.0), (0.6, 0.0))
+    assert "own error" in trust_reason(2000, (1000, 1000), (0.01, 0.001), (0.02, 0.01))
