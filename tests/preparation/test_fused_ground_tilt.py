@@ -42,8 +42,9 @@ def _relative_tilt_error_mdeg(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarr
     return 1e3 * np.degrees(np.max(np.abs(Rotation.from_matrix(E).as_rotvec()[:, :2]), axis=0))
 
 
-def test_the_ground_pairs_drift_and_the_solve_measures_it(merged_with_errors) -> None:
-    folder, inp = merged_with_errors
+def _pair_errors(folder: Path, inp: LocalizationInput) -> tuple[dict, np.ndarray, np.ndarray]:
+    """The ground pairs, their rotation errors (P, 3) against the truth (rotation vector of
+    frame j in frame k, rad) and the true distances (P,) between their frames (m)."""
     T = true_poses_at(folder, inp.times)
     g = _ground_constraints(inp, Health(), Sigmas())
     assert g is not None
@@ -51,20 +52,39 @@ def test_the_ground_pairs_drift_and_the_solve_measures_it(merged_with_errors) ->
     err = Rotation.from_matrix(
         np.swapaxes(T_k_j[:, :3, :3], 1, 2) @ g["T_k_j"][:, :3, :3]
     ).as_rotvec()
-    d = T_k_j[:, 0, 3]
-    # the pairs' roll error per metre between their frames (least squares through 0)
-    true_drift = 1e3 * np.degrees(np.sum(err[:, 0] * d) / np.sum(d * d))
+    return g, err, T_k_j[:, 0, 3]
+
+
+def _drift_mdeg_per_m(err: np.ndarray, d: np.ndarray) -> float:
+    """The errors' (P,) drift per metre of the distances (P,) (least squares through 0)."""
+    return float(1e3 * np.degrees(np.sum(err * d) / np.sum(d * d)))
+
+
+def _with_and_without(
+    inp: LocalizationInput, T: np.ndarray, off: Sigmas
+) -> tuple[dict, np.ndarray, dict, np.ndarray]:
+    """fused's health metrics and worst relative (roll, pitch) errors (mdeg) with the
+    default sigmas and with ``off``."""
+    out = []
+    for sig in (Sigmas(), off):
+        res = FusedStrategy(sig).run(inp)
+        out += [res.health.metrics, _relative_tilt_error_mdeg(res.track.interpolate(inp.times), T)]
+    return tuple(out)  # type: ignore[return-value]
+
+
+def test_the_ground_pairs_drift_and_the_solve_measures_it(merged_with_errors) -> None:
+    folder, inp = merged_with_errors
+    T = true_poses_at(folder, inp.times)
+    _, err, d = _pair_errors(folder, inp)
+    true_drift = _drift_mdeg_per_m(err[:, 0], d)  # the roll's
     assert abs(true_drift) > 1.0  # mdeg/m: 30 mdeg over a 20 m lag-10 pair
-    res = FusedStrategy(Sigmas()).run(inp)
-    est = res.health.metrics["fused_ground_tilt_roll_mdeg_per_m"]
+    metrics, worst, metrics_0, worst_0 = _with_and_without(inp, T, Sigmas(ground_tilt=0.0))
+    est = metrics["fused_ground_tilt_roll_mdeg_per_m"]
     assert est == pytest.approx(true_drift, abs=0.3 * abs(true_drift))
     # with it the roll over the sequence follows the gyros; without, the pairs' drift
-    worst = _relative_tilt_error_mdeg(res.track.interpolate(inp.times), T)
     assert worst[0] < 10.0, worst
-    res_0 = FusedStrategy(Sigmas(ground_tilt=0.0)).run(inp)
-    worst_0 = _relative_tilt_error_mdeg(res_0.track.interpolate(inp.times), T)
     assert worst_0[0] > 4.0 * worst[0], (worst, worst_0)
-    assert "fused_ground_tilt_roll_mdeg_per_m" not in res_0.health.metrics
+    assert "fused_ground_tilt_roll_mdeg_per_m" not in metrics_0
 
 
 def test_the_longer_pairs_pitch_drift_is_a_state_of_its_own(merged_with_errors) -> None:
@@ -73,24 +93,16 @@ def test_the_longer_pairs_pitch_drift_is_a_state_of_its_own(merged_with_errors) 
     lag-1 pairs and the gyros keep the pitch over the sequence."""
     folder, inp = merged_with_errors
     T = true_poses_at(folder, inp.times)
-    g = _ground_constraints(inp, Health(), Sigmas())
-    assert g is not None
+    g, err, d = _pair_errors(folder, inp)
     lag = g["j"] - g["k"]
     long = g["long"] > 0
     assert np.array_equal(long, lag > lag.min())
-    T_k_j = np.linalg.inv(T[g["k"]]) @ T[g["j"]]
-    err = Rotation.from_matrix(
-        np.swapaxes(T_k_j[:, :3, :3], 1, 2) @ g["T_k_j"][:, :3, :3]
-    ).as_rotvec()
-    d = T_k_j[:, 0, 3]
-    true_drift = 1e3 * np.degrees(np.sum(err[long, 1] * d[long]) / np.sum(d[long] ** 2))
+    true_drift = _drift_mdeg_per_m(err[long, 1], d[long])  # the long pairs' pitch's
     assert abs(true_drift) > 0.2  # mdeg/m: 4 mdeg over a 20 m lag-10 pair
-    res = FusedStrategy(Sigmas()).run(inp)
-    est = res.health.metrics["fused_ground_pitch_drift_mdeg_per_m"]
+    off = Sigmas(ground_pitch_drift=0.0)
+    metrics, worst, metrics_0, worst_0 = _with_and_without(inp, T, off)
+    est = metrics["fused_ground_pitch_drift_mdeg_per_m"]
     assert est == pytest.approx(true_drift, abs=0.25 * abs(true_drift))
-    worst = _relative_tilt_error_mdeg(res.track.interpolate(inp.times), T)
     assert worst[1] < 6.0, worst
-    res_0 = FusedStrategy(Sigmas(ground_pitch_drift=0.0)).run(inp)
-    worst_0 = _relative_tilt_error_mdeg(res_0.track.interpolate(inp.times), T)
     assert worst_0[1] > 3.0 * worst[1], (worst, worst_0)
-    assert "fused_ground_pitch_drift_mdeg_per_m" not in res_0.health.metrics
+    assert "fused_ground_pitch_drift_mdeg_per_m" not in metrics_0
