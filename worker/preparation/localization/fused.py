@@ -315,10 +315,11 @@ class Sigmas:
     #: pair's two frames share comes from different lidars in each, and the pair's roll is
     #: off in proportion to the distance between its frames (straight_sparse-f60-d0.3-
     #: osdar23-s11: +6.5 mdeg a 1.1 m step, +68 over ten; none with the lidars merged
-    #: without error). The gyros tell it from the track's own roll (a cant). The pairs'
-    #: pitch keeps no such state: freed, it traded against the odometry's and the rail
+    #: without error). The gyros tell it from the track's own roll (a cant). A pitch drift
+    #: of every pair, freed the same way, traded against the odometry's and the rail
     #: motion's pitch in curves (tight_curve-f20-d1-osdar23-s11: anchor error 1.09 ->
-    #: 2.91 px). 0 turns the state off.
+    #: 2.91 px): only the longer pairs' pitch has one (``ground_pitch_drift``). 0 turns
+    #: the state off.
     ground_tilt: float = 2e-4
     #: Prior sigma (rad per metre) of the pitch drift of the ground pairs longer than the
     #: shortest lag (the lag-10 pairs), a state of the solve: their pitch is off in
@@ -533,8 +534,8 @@ def _extra_cols(pb: Problem) -> dict[str, int]:
     parameter vector): with the rail motion the body's sway offsets ("sway": frame k's
     lateral, vertical at + 2 k, + 2 k + 1), their rates ("sway_rate", the same layout)
     and the base's distance ahead of the bogies' midpoint ("bogie"); with the ground pairs
-    the cloud's residual pitch ("cloud_pitch") and the pairs' roll drift per metre
-    ("ground_tilt")."""
+    the cloud's residual pitch ("cloud_pitch"), the pairs' roll drift per metre
+    ("ground_tilt") and the longer pairs' pitch drift per metre ("ground_pitch")."""
     i = _n_params(pb.n, pb.n_knots, pb.n_acc_knots)
     out = {}
     if pb.nh is not None:
@@ -2010,7 +2011,8 @@ def _column_groups(
     priors touch them) of frames 2 apart go together, per component, beside the last four
     misalignment columns, their rates (only the priors of one axis each) the same way
     beside the first four; the bogie offset and the ground pairs' roll drift beside the
-    first, the cloud's pitch beside the third (``extra``: :func:`_extra_cols`).
+    first, their pitch drift beside the second, the cloud's pitch beside the third
+    (``extra``: :func:`_extra_cols`).
     """
     groups = []
     for phase in range(period):
@@ -2034,9 +2036,9 @@ def _column_groups(
             beside[i] += list(v0 + 2 * np.arange(phase, n, 2) + comp)
     if "cloud_pitch" in extra:
         beside[2].append(extra["cloud_pitch"])
-    if "ground_tilt" in extra:  # ground rows only, as the cloud's pitch (beside 2)
+    if "ground_tilt" in extra:  # ground roll rows only (the cloud's pitch: height rows)
         beside[0].append(extra["ground_tilt"])
-    if "ground_pitch" in extra:  # ground rows only, beside the gyro bias' second
+    if "ground_pitch" in extra:  # the longer ground pairs' pitch rows only
         beside[1].append(extra["ground_pitch"])
     groups.extend(np.array([6 * n + j, *beside[j]], dtype=np.int64) for j in range(7))
     for phase in range(3):
