@@ -223,6 +223,17 @@ class Sigmas:
     #: anchor jitter p90 lower in 10, e.g. a slow sparse station 3.41 -> 1.18 px.
     scan_pairs: bool = True
     scan_pair_lat_floor: float = 0.002
+    #: A lag longer than the sequence is replaced by the pair over its whole length (lag
+    #: n - 1, at least :data:`MIN_WHOLE_RUN_LAG`): without it a 10-frame run had no
+    #: lateral reference beyond KISS-ICP's steps, and the gyros' heading noise, carried
+    #: sideways by the rail motion, moved the poses across the track (the C2 anchor error
+    #: of station-f10-d1-good-s10 1.28 -> 0.11 px, klein_flottbek-f10-d1-hard-s11 1.69 ->
+    #: 0.53), and a 20-frame run had only the lag-10 pairs. Not on a run degenerate
+    #: along the track: there a registration's lateral moves with where it starts along
+    #: the track, and KISS-ICP's, the first frames mapped (:func:`_map_first_steps`) and
+    #: the fine registration were each 8-16 mm off over 9 frames somewhere (straight_sparse
+    #: cells and seeds), against 5 without the pair.
+    odo_pair_whole_run: bool = True
     #: KISS-ICP's first steps re-registered against the map of the frames after them
     #: (:func:`_map_first_steps`; the option ``fused_map_first_steps: 0`` turns it off).
     map_first_steps: int = 3
@@ -1607,11 +1618,20 @@ def _odometry_pairs(
     track keeps only the lateral component. The lag-L pairs of consecutive k share L - 1
     steps: their sigmas are multiplied by sqrt(L) so that together they count about as
     one pair a lag apart, by sqrt(count) where fewer than L pairs are kept (a sequence
-    shorter than two lags: its few pairs overlap in most steps and count as one).
+    shorter than two lags: its few pairs overlap in most steps and count as one). A lag
+    longer than the run is replaced by the run's whole length (``sig.odo_pair_whole_run``:
+    one pair) where the odometry is not degenerate along the track.
     Returns k, j (Q,), T_k_j (Q, 4, 4) and w (Q, 2): 1/sigma of frame j's position in
     frame k along the track and laterally."""
     n = len(inp.frames)
-    lags = [int(L) for L in sig.odo_pair_lags if 0 < int(L) < n]
+    lags = sorted({int(L) for L in sig.odo_pair_lags if 0 < int(L) < n})
+    if (
+        sig.odo_pair_whole_run
+        and not degenerate
+        and n - 1 >= MIN_WHOLE_RUN_LAG
+        and max(sig.odo_pair_lags) >= n
+    ):
+        lags = sorted(set(lags) | {n - 1})
     if not lags or len(w_t) == 0:
         return None
     try:
@@ -1692,6 +1712,9 @@ def _map_first_steps(inp: LocalizationInput, D: F64, health: Health, sig: Sigmas
     health.metrics["fused_first_frames_to_map"] = float(done)
     return T
 
+
+#: Shortest lag of the odometry pair over a whole run shorter than a lag.
+MIN_WHOLE_RUN_LAG = 4
 
 #: Fewest closures (:func:`.scan_pairs.closure_factor`) to scale the scan pairs by.
 MIN_CLOSURES = 3
