@@ -66,6 +66,16 @@ def test_a_short_run_gets_one_pair_over_its_length(short_runs: list[Path]) -> No
     )
     assert off is None  # the default lags (10, 30) do not fit 10 frames
     assert n - 1 >= MIN_WHOLE_RUN_LAG
+    # a lag that fits stays, the one that does not becomes the whole run beside it
+    both = _odometry_pairs(
+        inp, w_t, w_r, still, False, Health(), Sigmas(scan_pairs=False, odo_pair_lags=(5, 30))
+    )
+    assert both is not None
+    assert sorted(set((both["j"] - both["k"]).tolist())) == [5, n - 1]
+    # none on a degenerate run, none when no lag is asked for
+    assert _odometry_pairs(inp, w_t, w_r, still, True, Health(), Sigmas(scan_pairs=False)) is None
+    none = Sigmas(scan_pairs=False, odo_pair_lags=())
+    assert _odometry_pairs(inp, w_t, w_r, still, False, Health(), none) is None
 
 
 def test_the_pair_holds_a_short_run_across_the_track(short_runs: list[Path]) -> None:

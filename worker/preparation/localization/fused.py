@@ -1629,7 +1629,7 @@ def _odometry_pairs(
         sig.odo_pair_whole_run
         and not degenerate
         and n - 1 >= MIN_WHOLE_RUN_LAG
-        and max(sig.odo_pair_lags) >= n
+        and max(sig.odo_pair_lags, default=0) >= n
     ):
         lags = sorted(set(lags) | {n - 1})
     if not lags or len(w_t) == 0:
