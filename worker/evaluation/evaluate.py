@@ -282,6 +282,12 @@ SPHERE_RADIUS_M = 0.25
 LIDAR_SUPPORT_M = SPHERE_RADIUS_M
 #: How far :func:`lidar_support` looks for a return (m).
 SUPPORT_SEARCH_M = 2.0
+#: What the synthetic operator clicks on a measured landmark: "return", the image point of
+#: the lidar return nearest the landmark (the point seen in both the image and the cloud
+#: that the paper's operator picks); "landmark", the landmark itself (a pole top: the RPE
+#: then carries the landmark's distance to its nearest return, 0.1-0.2 m below or beside it
+#: on sparse clouds, 5-20 px at 50-70 m on rgb_highres_center with perfect poses).
+CLICK_TARGETS = ("return", "landmark")
 
 
 def _camera_times(seq: Any, camera: str) -> dict[int, float]:
@@ -347,6 +353,7 @@ def synthetic_clicks(
     min_views: int = MIN_VIEWS,
     lidar_support_m: float = LIDAR_SUPPORT_M,
     clouds: Any = None,
+    click_target: str = "return",
 ) -> list[Any]:
     """Clicks from the ground truth of a synthetic sequence: one :class:`Clicks` per
     landmark, its true full-resolution pixel in every frame where it is ``near``-``far``
@@ -357,7 +364,11 @@ def synthetic_clicks(
     view is measured, the unmeasured ones are clicked with a warning). The paper's
     operator clicks a landmark seen in both the image and the cloud; a pole top no beam
     ever hit has no calibration point, only points of other surfaces near its rays, and
-    its RPE with the true poses is tens of pixels (:func:`lidar_support`). ``clouds``: the
+    its RPE with the true poses is tens of pixels (:func:`lidar_support`). On a measured
+    landmark the click is, with ``click_target="return"``, the true pixel of its nearest
+    return (registered with the true poses: the point as the cloud holds it, its range
+    noise and merge calibration error included) where the landmark is in view; with
+    ``"landmark"`` the landmark's own pixel (:data:`CLICK_TARGETS`). ``clouds``: the
     sequence's :class:`~worker.preparation.frame_clouds.FrameClouds` if already read."""
 
     folder = Path(seq_folder)
@@ -367,31 +378,42 @@ def synthetic_clicks(
     truth = PoseTrack.from_csv(dense if dense.is_file() else gt / "poses.csv")
     cams = full_resolution_cameras(seq, cameras)
     landmarks = json.loads((gt / "landmarks.json").read_text())
+    if click_target not in CLICK_TARGETS:
+        raise ValueError(f"click_target {click_target!r}: one of {', '.join(CLICK_TARGETS)}")
     measured = {lm["id"] for lm in landmarks}
+    target: dict[str, np.ndarray] = {}  # landmark -> the 3D point clicked, if not itself
     if lidar_support_m > 0 and landmarks:
         xyz = np.array([lm["xyz"] for lm in landmarks], dtype=np.float64).reshape(-1, 3)
-        d = lidar_support(clouds if clouds is not None else _frame_clouds(seq), truth, xyz)
+        d, p_ret = nearest_returns(clouds if clouds is not None else _frame_clouds(seq), truth, xyz)
         measured = {lm["id"] for lm, di in zip(landmarks, d, strict=True) if di <= lidar_support_m}
+        if click_target == "return":
+            target = {lm["id"]: p_ret[i] for i, lm in enumerate(landmarks) if lm["id"] in measured}
     rng = np.random.default_rng(seed)
     scored = []
     for lm in landmarks:
-        xyz = np.asarray(lm["xyz"], dtype=np.float64)
+        xyz = target.get(lm["id"], np.asarray(lm["xyz"], dtype=np.float64))
         uv: dict[str, dict[int, np.ndarray]] = {}
         for name, cam in cams.items():
             times = _camera_times(seq, name)
             pix = lm.get("pixels", {}).get(name, {})
             for f_txt, p in sorted(pix.items(), key=lambda kv: int(kv[0])):
                 f = int(f_txt)
-                if p is None or f not in times:
+                if p is None or f not in times:  # the landmark out of view or occluded
                     continue
                 T = truth.interpolate(np.array([times[f]]), max_extrapolation_s=0.1)[0]
                 T_opt_world = np.linalg.inv(T @ cam.T_base_opt)
                 depth = float(T_opt_world[2, :3] @ xyz + T_opt_world[2, 3])
-                if near <= depth <= far:
-                    click = np.asarray(p, dtype=np.float64)
-                    if click_noise_px > 0:
-                        click = click + rng.normal(0.0, click_noise_px, 2)
-                    uv.setdefault(name, {})[f] = click
+                if not near <= depth <= far:
+                    continue
+                click = np.asarray(p, dtype=np.float64)
+                if lm["id"] in target:
+                    click, ok = cam.project_world(xyz, T)
+                    if not (ok[0] and cam.in_image(click)[0]):
+                        continue
+                    click = click[0]
+                if click_noise_px > 0:
+                    click = click + rng.normal(0.0, click_noise_px, 2)
+                uv.setdefault(name, {})[f] = click
             if len(uv.get(name, {})) < min_views:
                 uv.pop(name, None)
         if uv:
@@ -413,17 +435,37 @@ def lidar_support(clouds: Any, track: Any, xyz_world: np.ndarray) -> np.ndarray:
     """(m,) distance (m) from each landmark (m, 3) to the nearest lidar return of any frame
     of ``clouds`` (full density as read), registered with ``track`` (inf: none within
     :data:`SUPPORT_SEARCH_M`)."""
+    return nearest_returns(clouds, track, xyz_world)[0]
+
+
+def nearest_returns(
+    clouds: Any, track: Any, xyz_world: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The lidar return of any frame of ``clouds`` (full density as read, registered with
+    ``track``) nearest each landmark (m, 3) world: (distance (m,) m, inf where none is
+    within :data:`SUPPORT_SEARCH_M`; the return (m, 3) float64 world, NaN there)."""
     best = np.full(len(xyz_world), np.inf)
+    p_world = np.full((len(xyz_world), 3), np.nan)
     frames = clouds.frames
     if not frames or not len(xyz_world):
-        return best
+        return best, p_world
     T_all = track.interpolate(np.array([clouds.frame_times[f] for f in frames]))
     for f, T in zip(frames, T_all, strict=True):
         lm_base = (xyz_world - T[:3, 3]) @ T[:3, :3]  # the landmarks in the frame's base
-        d, i = cKDTree(lm_base).query(clouds.get(f).p_base32, distance_upper_bound=SUPPORT_SEARCH_M)
-        hit = np.isfinite(d)
-        np.minimum.at(best, i[hit], d[hit])
-    return best
+        p_base = clouds.get(f).p_base32
+        d, i = cKDTree(lm_base).query(p_base, distance_upper_bound=SUPPORT_SEARCH_M)
+        pts = np.flatnonzero(np.isfinite(d))
+        if not len(pts):
+            continue
+        pts = pts[np.lexsort((d[pts], i[pts]))]  # by landmark, nearest first
+        first = np.r_[True, i[pts][1:] != i[pts][:-1]]
+        pts = pts[first]
+        lm, dl = i[pts], d[pts]
+        better = dl < best[lm]
+        lm, pts = lm[better], pts[better]
+        best[lm] = dl[better]
+        p_world[lm] = p_base[pts].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    return best, p_world
 
 
 def rpe_from_clicks(
