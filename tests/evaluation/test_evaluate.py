@@ -262,6 +262,23 @@ def test_clicks_file_cli_writes_everything(
     assert "RPE mean" in capsys.readouterr().out
 
 
+def test_cli_click_target(seq: Path, tmp_path: Path, prep_cache: Path) -> None:
+    """``--click-target landmark`` clicks the landmarks themselves: their RPE with the same
+    poses is that of the returns plus their distance to them, larger on the whole."""
+    from worker.cli import main
+
+    got = {}
+    for target in ("return", "landmark"):
+        out = tmp_path / target
+        args = ["evaluate", str(seq), "--out", str(out), "--strategies", "fused", "--no-overlay"]
+        assert main([*args, "--click-target", target, "--cache-dir", str(prep_cache)]) == 0
+        got[target] = json.loads((out / "metrics.json").read_text())
+        assert got[target]["click_target"] == target
+    ret, lm = (got[t]["rpe"]["rgb_highres_center"]["fused"] for t in ("return", "landmark"))
+    assert ret["n"] > 10 and lm["n"] > 10
+    assert lm["rpe_mean"] > ret["rpe_mean"]
+
+
 def test_cli_errors_exit_2(seq: Path, tmp_path: Path, prep_cache: Path) -> None:
     from worker.cli import main
 

@@ -6,10 +6,12 @@ shared preparation input (:func:`~worker.preparation.prepare.localization_setup`
 measured against the ground truth:
 
 - relative pose error over lags 1, 10 and 30 frames (:mod:`geometry.trajectory_error`);
-- the paper's RPE and jitter on both cameras (clicks from the true landmark pixels), and
-  the same with the true poses (``paper_floor``): the calibration point is a point of the
-  lidar cloud, and where the lidar's beams never hit the landmark itself (a short, sparse
-  or standing sequence) even the true poses leave that point's offset as RPE;
+- the paper's RPE and jitter on both cameras (clicks at the true pixels of the lidar
+  return nearest each measured landmark, :func:`~worker.evaluation.evaluate.synthetic_clicks`),
+  and the same with the true poses (``paper_floor``): the calibration point is a point of
+  the lidar cloud; with clicks on the landmarks themselves, where the beams never hit the
+  landmark (a short, sparse or standing sequence), even the true poses left that point's
+  offset as RPE;
 - the placed object's anchor error: an object on the TRUE ego track ahead of the train is
   mapped from the first frame (the frame whose cloud first covers it, as the registered
   map keeps a voxel's first point) with each strategy's pose there, and projected in

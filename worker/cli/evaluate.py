@@ -56,7 +56,8 @@ def run(args: argparse.Namespace) -> int:
         metrics, rows = evaluate_strategies(
             args.sequence, tracks, world=world, cameras=cameras, clicks=clicks,
             near=args.near, far=args.far, click_noise_px=args.click_noise, seed=args.seed,
-            max_landmarks=args.max_landmarks, preparation=prep, **dense_kw,
+            max_landmarks=args.max_landmarks, preparation=prep, click_target=args.click_target,
+            **dense_kw,
         )  # fmt: skip
     except (ClicksError, ValueError) as exc:
         raise CliError(str(exc)) from exc

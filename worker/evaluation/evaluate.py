@@ -25,15 +25,18 @@ frame i and that point projected with frame i's pose at the camera's own timesta
 J_i = |RPE_{i+1} - RPE_i| between consecutive frame counters. Clicks come from a file
 (real data, formats in ``calibration_point.py`` / the README) or, on synthetic sequences,
 from the ground truth: every landmark the lidar measured (a return within 0.25 m, true
-poses), its true full-resolution pixel (optionally with Gaussian click noise) in the
-frames where it is ``near``-``far`` m in front of the camera (default 30-80 m). Pixels are
+poses), the true full-resolution pixel of that nearest return, the point seen in both the
+image and the cloud (or of the landmark itself, ``click_target="landmark"``; optionally
+with Gaussian click noise) in the frames where the landmark is in view and the point
+``near``-``far`` m in front of the camera (default 30-80 m). Pixels are
 at the camera's full resolution. Means and standard deviations pool every observation of
 every landmark; ``landmark_mean`` is the mean over landmarks of their RPE means.
 
 metrics.json keys (:func:`evaluate_strategies`):
 
 - ``sequence``, ``frames``, ``cameras``, ``strategies``, ``clicks_source``
-  ("file" | "ground_truth"), ``near_m``, ``far_m``, ``click_noise_px``, ``dense_radius_m``
+  ("file" | "ground_truth"), ``near_m``, ``far_m``, ``click_noise_px``, ``click_target``
+  ("return" | "landmark", synthetic clicks), ``dense_radius_m``
   (the calibration point's full-density refinement radius, 0: the registered cloud only);
 - ``rpe[camera][strategy]`` = {``rpe_mean``, ``rpe_std``, ``rpe_max``, ``jitter_mean``,
   ``jitter_std``, ``jitter_max``, ``n``, ``n_jitter``, ``landmark_mean``,
@@ -647,6 +650,7 @@ def _clicks(
     seed: int,
     max_landmarks: int,
     clouds: Any = None,
+    click_target: str = "return",
 ) -> tuple[list[Any], str]:
     """The clicks (given, or synthetic from the ground truth) and their source; every
     camera they name must be in the sequence."""
@@ -658,7 +662,7 @@ def _clicks(
         cams_wanted = cameras or list(seq.cameras)
         clicks = synthetic_clicks(
             folder, cams_wanted, near=near, far=far, click_noise_px=click_noise_px,
-            seed=seed, max_landmarks=max_landmarks, clouds=clouds,
+            seed=seed, max_landmarks=max_landmarks, clouds=clouds, click_target=click_target,
         )  # fmt: skip
     missing = sorted({c for cl in clicks for c in cl.uv} - set(seq.cameras))
     if missing:
@@ -729,6 +733,7 @@ def evaluate_strategies(
     max_landmarks: int = 8,
     preparation: dict[str, Any] | None = None,
     dense_radius_m: float = DENSE_RADIUS_M,
+    click_target: str = "return",
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """The paper's RPE and jitter per camera and strategy (module docstring).
 
@@ -739,6 +744,7 @@ def evaluate_strategies(
     world : the world frame the tracks are in (the preparation's).
     cameras : cameras to evaluate (default: the clicked ones, else every camera).
     clicks : landmarks' clicks (None: from the ground truth; then it must exist).
+    click_target : what the synthetic clicks hit (:data:`CLICK_TARGETS`).
     preparation : {strategy: {...}} copied into the metrics.
     dense_radius_m : refine each calibration point among the full-density points of every
         frame within this radius (m), registered with the strategy's poses; 0: the paper's
@@ -756,6 +762,7 @@ def evaluate_strategies(
     clicks, source = _clicks(
         folder, seq, clicks, cameras, has_gt=has_gt, near=near, far=far,
         click_noise_px=click_noise_px, seed=seed, max_landmarks=max_landmarks, clouds=clouds,
+        click_target=click_target,
     )  # fmt: skip
     if cameras is None:
         cameras = sorted({c for cl in clicks for c in cl.uv})
@@ -771,6 +778,7 @@ def evaluate_strategies(
         "near_m": near if source == "ground_truth" else None,
         "far_m": far if source == "ground_truth" else None,
         "click_noise_px": click_noise_px if source == "ground_truth" else None,
+        "click_target": click_target if source == "ground_truth" else None,
         "dense_radius_m": dense_radius_m,
         "rpe": {},
     }

@@ -28,6 +28,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--near", type=float, default=30.0, help="m, synthetic landmarks from")
     p.add_argument("--far", type=float, default=80.0, help="m, synthetic landmarks to")
     p.add_argument("--click-noise", type=float, default=0.0, help="px, synthetic click noise")
+    p.add_argument(
+        "--click-target", choices=["return", "landmark"], default="return",
+        help="synthetic clicks on the lidar return nearest each landmark (default) or on the "
+        "landmark itself (its RPE then includes its distance to the nearest return)",
+    )  # fmt: skip
     p.add_argument("--max-landmarks", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--voxel-size", type=float, default=None, help="m, registered cloud voxel")
