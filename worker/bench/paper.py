@@ -1,9 +1,9 @@
 """The paper's table (OSDAR23.md) and ours on the synthetic counterparts of its sequences.
 
 One row per (sequence, camera, strategy): RPE and jitter mean and std in pixels at the
-camera's full resolution (:func:`worker.evaluation.evaluate.evaluate_strategies`, landmarks 30-80 m
-ahead clicked at their true pixels) and the seconds of a full preparation with that
-strategy (no cache; KISS-ICP included for every strategy).
+camera's full resolution (:func:`worker.evaluation.evaluate.evaluate_strategies`, landmarks
+30-80 m ahead clicked at the true pixels of their nearest lidar returns) and the seconds of a
+full preparation with that strategy (no cache; KISS-ICP included for every strategy).
 """
 
 from __future__ import annotations

@@ -127,8 +127,8 @@ def _paper_sequences(
 def _print_paper_table(s: BenchSettings, rows: list[dict[str, Any]]) -> None:
     _print(
         f"RPE / jitter, mean±std px at full resolution ({s.frames} frames, landmarks 30-80 m "
-        "ahead clicked at their true pixels); [the paper's value] for ins, odometry (odo), "
-        "rails (refined)"
+        "ahead clicked at the true pixels of their nearest lidar returns); [the paper's "
+        "value] for ins, odometry (odo), rails (refined)"
     )
     _print(format_table(rows, list(s.strategies)))
     _print("\npreparation seconds per strategy (median over sequences):")
