@@ -163,6 +163,19 @@ def test_return_clicks_are_the_nearest_returns_true_pixels(seq: Path) -> None:
                 np.testing.assert_allclose(uv, ret_uv[0], atol=1e-9)
                 moved.append(np.linalg.norm(uv - lm_uv[0]))
     assert moved and max(moved) > 0.5  # the returns are not the landmarks
+    # none measured within 1 mm: the fallback clicks every landmark in view at its nearest
+    # return within 2 m, still a point of the cloud
+    fallback = synthetic_clicks(seq, CAMS, lidar_support_m=1e-3)
+    ids = [c.landmark for c in fallback]
+    xyz = np.array([lms[i]["xyz"] for i in ids], dtype=np.float64)
+    d, p_ret = nearest_returns(FrameClouds(s, max_range=120.0), truth, xyz)
+    assert len(fallback) and np.all(np.isfinite(d))
+    for k, c in enumerate(fallback):
+        for cam, frames in c.uv.items():
+            times = _camera_times(s, cam)
+            for f, uv in frames.items():
+                T = truth.interpolate(np.array([times[f]]))[0]
+                np.testing.assert_allclose(uv, cams[cam].project_world(p_ret[k], T)[0][0])
     with pytest.raises(ValueError, match="click_target"):
         synthetic_clicks(seq, CAMS, click_target="pole")
 

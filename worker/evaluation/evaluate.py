@@ -364,7 +364,8 @@ def synthetic_clicks(
 
     Only landmarks the lidar measured are clicked: a return of some frame (true poses, full
     density) within ``lidar_support_m`` of the landmark (0: every landmark; when none in
-    view is measured, the unmeasured ones are clicked with a warning). The paper's
+    view is measured, the unmeasured ones are clicked with a warning, at their nearest
+    return within :data:`SUPPORT_SEARCH_M` with ``click_target="return"``). The paper's
     operator clicks a landmark seen in both the image and the cloud; a pole top no beam
     ever hit has no calibration point, only points of other surfaces near its rays, and
     its RPE with the true poses is tens of pixels (:func:`lidar_support`). On a measured
@@ -389,8 +390,8 @@ def synthetic_clicks(
         xyz = np.array([lm["xyz"] for lm in landmarks], dtype=np.float64).reshape(-1, 3)
         d, p_ret = nearest_returns(clouds if clouds is not None else _frame_clouds(seq), truth, xyz)
         measured = {lm["id"] for lm, di in zip(landmarks, d, strict=True) if di <= lidar_support_m}
-        if click_target == "return":
-            target = {lm["id"]: p_ret[i] for i, lm in enumerate(landmarks) if lm["id"] in measured}
+        if click_target == "return":  # the unmeasured ones too, for the fallback below
+            target = {lm["id"]: p_ret[i] for i, lm in enumerate(landmarks) if np.isfinite(d[i])}
     rng = np.random.default_rng(seed)
     scored = []
     for lm in landmarks:
@@ -427,8 +428,9 @@ def synthetic_clicks(
     if scored and not kept:  # a few frames of a sparse cloud: say so, click them anyway
         log.warning(
             "%s: no landmark in view has a lidar return within %.2f m; clicking the "
-            "unmeasured ones (their RPE includes the distance to the nearest return)",
-            seq.name, lidar_support_m,
+            "unmeasured ones (%s)", seq.name, lidar_support_m,
+            f"at their nearest return within {SUPPORT_SEARCH_M:.1f} m, where one is"
+            if target else "their RPE includes the distance to the nearest return",
         )  # fmt: skip
         kept = scored
     return [c for _, c in kept[:max_landmarks]]
