@@ -117,8 +117,7 @@ def test_only_landmarks_the_lidar_measured_are_clicked(seq: Path) -> None:
     assert near.any() and (~near).any()  # the test means something both ways
     np.testing.assert_allclose(got[near], brute[near], atol=1e-5)  # float32 points
     assert np.all(np.isinf(got[~near]))
-    d_ret, p_ret = nearest_returns(FrameClouds(s, max_range=120.0), truth, xyz)
-    np.testing.assert_array_equal(d_ret, got)
+    _, p_ret = nearest_returns(FrameClouds(s, max_range=120.0), truth, xyz)
     brute_p = np.array([full[np.argmin(np.linalg.norm(full - p, axis=1))] for p in xyz])
     np.testing.assert_allclose(p_ret[near], brute_p[near], atol=1e-4)
     assert np.all(np.isnan(p_ret[~near]))
@@ -130,6 +129,35 @@ def test_only_landmarks_the_lidar_measured_are_clicked(seq: Path) -> None:
     # none measured within 1 mm: the unmeasured ones are clicked (with a warning)
     every = [c.landmark for c in synthetic_clicks(seq, CAMS, lidar_support_m=0.0)]
     assert [c.landmark for c in synthetic_clicks(seq, CAMS, lidar_support_m=1e-3)] == every
+
+
+def test_nearest_returns_when_landmarks_share_their_nearest_points() -> None:
+    """Two landmarks 0.3 m apart: the return nearest A lies nearer still to B, and is A's
+    nearest all the same; a return of a later frame counts where it is nearer."""
+    from types import SimpleNamespace
+
+    A, B = np.array([10.0, 0.0, 2.0]), np.array([10.0, 0.3, 2.0])
+    frame0 = np.array([[10.0, 0.2, 2.0], [10.0, -0.5, 2.0], [50.0, 0.0, 0.0]], np.float32)
+    frame1 = np.array([[9.0, 0.05, 2.0], [9.0, 3.0, 2.0]], np.float32)
+
+    def clouds(frames: list[int]) -> SimpleNamespace:
+        return SimpleNamespace(
+            frames=frames,
+            frame_times={0: 0.0, 1: 0.1},
+            get=lambda f: SimpleNamespace(p_base32=[frame0, frame1][f]),
+        )
+
+    T = np.tile(np.eye(4), (2, 1, 1))
+    T[1, 0, 3] = 1.0  # frame 1's base 1 m further along x: its points 1 m further in the world
+    track = PoseTrack(np.array([0.0, 0.1]), T, np.array([0, 1]))
+    lms = np.stack([A, B, [90.0, 0.0, 0.0]])
+    d, p = nearest_returns(clouds([0]), track, lms)
+    np.testing.assert_allclose(d[:2], [0.2, 0.1], atol=1e-6)
+    np.testing.assert_allclose(p[:2], [[10.0, 0.2, 2.0], [10.0, 0.2, 2.0]], atol=1e-6)
+    d, p = nearest_returns(clouds([0, 1]), track, lms)
+    np.testing.assert_allclose(d[:2], [0.05, 0.1], atol=1e-6)
+    np.testing.assert_allclose(p[:2], [[10.0, 0.05, 2.0], [10.0, 0.2, 2.0]], atol=1e-6)
+    assert np.isinf(d[2]) and np.all(np.isnan(p[2]))
 
 
 def test_return_clicks_are_the_nearest_returns_true_pixels(seq: Path) -> None:
@@ -161,6 +189,8 @@ def test_return_clicks_are_the_nearest_returns_true_pixels(seq: Path) -> None:
                 np.testing.assert_allclose(lm_uv[0], lms[ids[k]]["pixels"][cam][str(f)], atol=0.01)
                 ret_uv, _ = cams[cam].project_world(p_ret[k], T)
                 np.testing.assert_allclose(uv, ret_uv[0], atol=1e-9)
+                T_opt_world = np.linalg.inv(T @ cams[cam].T_base_opt)
+                assert 30.0 <= T_opt_world[2, :3] @ p_ret[k] + T_opt_world[2, 3] <= 80.0
                 moved.append(np.linalg.norm(uv - lm_uv[0]))
     assert moved and max(moved) > 0.5  # the returns are not the landmarks
     # none measured within 1 mm: the fallback clicks every landmark in view at its nearest

@@ -359,21 +359,23 @@ def synthetic_clicks(
     click_target: str = "return",
 ) -> list[Any]:
     """Clicks from the ground truth of a synthetic sequence: one :class:`Clicks` per
-    landmark, its true full-resolution pixel in every frame where it is ``near``-``far``
-    m in front of the camera (true pose at the camera's timestamp), plus N(0, noise^2).
+    landmark, the true full-resolution pixel of the point clicked (see below) in every
+    frame where the landmark is in view and the point ``near``-``far`` m in front of the
+    camera (true pose at the camera's timestamp), plus N(0, noise^2).
 
     Only landmarks the lidar measured are clicked: a return of some frame (true poses, full
-    density) within ``lidar_support_m`` of the landmark (0: every landmark; when none in
-    view is measured, the unmeasured ones are clicked with a warning, at their nearest
-    return within :data:`SUPPORT_SEARCH_M` with ``click_target="return"``). The paper's
-    operator clicks a landmark seen in both the image and the cloud; a pole top no beam
-    ever hit has no calibration point, only points of other surfaces near its rays, and
-    its RPE with the true poses is tens of pixels (:func:`lidar_support`). On a measured
-    landmark the click is, with ``click_target="return"``, the true pixel of its nearest
-    return (registered with the true poses: the point as the cloud holds it, its range
-    noise and merge calibration error included) where the landmark is in view; with
-    ``"landmark"`` the landmark's own pixel (:data:`CLICK_TARGETS`). ``clouds``: the
-    sequence's :class:`~worker.preparation.frame_clouds.FrameClouds` if already read."""
+    density) within ``lidar_support_m`` of the landmark (0: every landmark, each clicked
+    at itself; when none in view is measured, the unmeasured ones are clicked with a
+    warning, at their nearest return within :data:`SUPPORT_SEARCH_M` where there is one).
+    The paper's operator clicks a landmark seen in both the image and the cloud; a pole top
+    no beam ever hit has no calibration point, only points of other surfaces near its rays,
+    and its RPE with the true poses is tens of pixels (:func:`lidar_support`). The point
+    clicked is, with ``click_target="return"``, the landmark's nearest return as the
+    merged cloud holds it (registered with the true poses; its range noise and the merge's
+    calibration error included: the measure does not see the cloud's own calibration
+    error, which a real operator clicking the physical feature would); with
+    ``"landmark"`` the landmark itself (:data:`CLICK_TARGETS`). ``clouds``: the sequence's
+    :class:`~worker.preparation.frame_clouds.FrameClouds` if already read."""
 
     folder = Path(seq_folder)
     gt = folder / "ground_truth"
@@ -458,18 +460,16 @@ def nearest_returns(
     for f, T in zip(frames, T_all, strict=True):
         lm_base = (xyz_world - T[:3, 3]) @ T[:3, :3]  # the landmarks in the frame's base
         p_base = clouds.get(f).p_base32
-        d, i = cKDTree(lm_base).query(p_base, distance_upper_bound=SUPPORT_SEARCH_M)
-        pts = np.flatnonzero(np.isfinite(d))
-        if not len(pts):
+        # the points within reach of some landmark, then each landmark's nearest among them
+        d, _ = cKDTree(lm_base).query(p_base, distance_upper_bound=SUPPORT_SEARCH_M)
+        near = np.flatnonzero(np.isfinite(d))
+        if not len(near):
             continue
-        pts = pts[np.lexsort((d[pts], i[pts]))]  # by landmark, nearest first
-        first = np.r_[True, i[pts][1:] != i[pts][:-1]]
-        pts = pts[first]
-        lm, dl = i[pts], d[pts]
-        better = dl < best[lm]
-        lm, pts = lm[better], pts[better]
-        best[lm] = dl[better]
-        p_world[lm] = p_base[pts].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        p_near = p_base[near].astype(np.float64)
+        dl, j = cKDTree(p_near).query(lm_base, distance_upper_bound=SUPPORT_SEARCH_M)
+        better = np.flatnonzero(np.isfinite(dl) & (dl < best))
+        best[better] = dl[better]
+        p_world[better] = p_near[j[better]] @ T[:3, :3].T + T[:3, 3]
     return best, p_world
 
 
