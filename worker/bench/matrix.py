@@ -355,7 +355,7 @@ def run_cell(cell: Cell, root: Path, *, keep: bool = False) -> dict[str, Any]:
             "rpe": {str(k): v.summary() for k, v in lag.items()},
             "health": _health(res),
         }
-    # the paper's RPE / jitter (clicks from the true landmarks; each strategy's own cloud)
+    # the paper's RPE / jitter (clicks on the landmarks' nearest returns; each strategy's cloud)
     reg = config.registration
     frames = sorted(set(inp.frames[:: reg.frame_step]) | {inp.frames[-1]})
     tracks = {}
@@ -751,8 +751,9 @@ def plot_heatmap(result: dict[str, Any], png: str | Path) -> Path:
 
 def plot_paper_floor(result: dict[str, Any], png: str | Path) -> Path:
     """Per cell, rgb_highres_center's paper RPE with ``auto``'s poses against the same
-    measure with the true poses (its floor: the calibration point's offset from the
-    landmark), with the goals of moving and of short or standing cells."""
+    measure with the true poses (its floor: what is left of the clicked point's offset
+    from the cloud; drawn at 0.01 px at least on the log axis), with the goals of moving
+    and of short or standing cells."""
     import matplotlib  # lazy: a plot is optional output; the figure backend costs ~0.5 s
 
     matplotlib.use("Agg")
