@@ -22,7 +22,6 @@ from worker.evaluation.evaluate import (
     _jitter,
     cloud_for_track,
     evaluate_strategies,
-    lidar_support,
     nearest_returns,
     summarize_rpe,
     synthetic_clicks,
@@ -101,7 +100,7 @@ def test_synthetic_clicks_are_30_to_80_m_ahead(seq: Path) -> None:
 
 
 def test_only_landmarks_the_lidar_measured_are_clicked(seq: Path) -> None:
-    """lidar_support is the distance to the nearest return of any frame (true poses); the
+    """nearest_returns gives the nearest return of any frame (true poses) and its distance; the
     synthetic operator clicks only landmarks with one within 0.25 m (none within 1 mm)."""
     from worker.preparation.frame_clouds import FrameClouds
     from worker.preparation.registration import register_clouds
@@ -110,14 +109,13 @@ def test_only_landmarks_the_lidar_measured_are_clicked(seq: Path) -> None:
     truth = PoseTrack.from_csv(seq / "ground_truth/poses.csv")
     lms = json.loads((seq / "ground_truth/landmarks.json").read_text())
     xyz = np.array([lm["xyz"] for lm in lms], dtype=np.float64)
-    got = lidar_support(FrameClouds(s, max_range=120.0), truth, xyz)
+    got, p_ret = nearest_returns(FrameClouds(s, max_range=120.0), truth, xyz)
     full = register_clouds(s, truth, voxel_size=0.0, max_range=120.0).xyz
     brute = np.array([np.min(np.linalg.norm(full - p, axis=1)) for p in xyz])
     near = brute <= 2.0
     assert near.any() and (~near).any()  # the test means something both ways
     np.testing.assert_allclose(got[near], brute[near], atol=1e-5)  # float32 points
     assert np.all(np.isinf(got[~near]))
-    _, p_ret = nearest_returns(FrameClouds(s, max_range=120.0), truth, xyz)
     brute_p = np.array([full[np.argmin(np.linalg.norm(full - p, axis=1))] for p in xyz])
     np.testing.assert_allclose(p_ret[near], brute_p[near], atol=1e-4)
     assert np.all(np.isnan(p_ret[~near]))

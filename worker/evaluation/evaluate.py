@@ -283,7 +283,7 @@ SPHERE_RADIUS_M = 0.25
 #: (m): the calibration sphere's radius, a point on the landmark's own object (a pole top's
 #: rim is 0.12 m from its axis).
 LIDAR_SUPPORT_M = SPHERE_RADIUS_M
-#: How far :func:`lidar_support` looks for a return (m).
+#: How far :func:`nearest_returns` looks for a return (m).
 SUPPORT_SEARCH_M = 2.0
 #: What the synthetic operator clicks on a measured landmark: "return", the image point of
 #: the lidar return nearest the landmark (the point seen in both the image and the cloud
@@ -369,7 +369,7 @@ def synthetic_clicks(
     warning, at their nearest return within :data:`SUPPORT_SEARCH_M` where there is one).
     The paper's operator clicks a landmark seen in both the image and the cloud; a pole top
     no beam ever hit has no calibration point, only points of other surfaces near its rays,
-    and its RPE with the true poses is tens of pixels (:func:`lidar_support`). The point
+    and its RPE with the true poses is tens of pixels (:func:`nearest_returns`). The point
     clicked is, with ``click_target="return"``, the landmark's nearest return as the
     merged cloud holds it (registered with the true poses; its range noise and the merge's
     calibration error included: the measure does not see the cloud's own calibration
@@ -436,13 +436,6 @@ def synthetic_clicks(
         )  # fmt: skip
         kept = scored
     return [c for _, c in kept[:max_landmarks]]
-
-
-def lidar_support(clouds: Any, track: Any, xyz_world: np.ndarray) -> np.ndarray:
-    """(m,) distance (m) from each landmark (m, 3) to the nearest lidar return of any frame
-    of ``clouds`` (full density as read), registered with ``track`` (inf: none within
-    :data:`SUPPORT_SEARCH_M`)."""
-    return nearest_returns(clouds, track, xyz_world)[0]
 
 
 def nearest_returns(
