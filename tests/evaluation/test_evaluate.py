@@ -344,3 +344,120 @@ def test_evaluate_sequence_keeps_the_job_keys_and_adds_the_paper_rpe(
     assert set(m["paper_rpe"]["rgb_highres_center"]) == {"fused", "ins", "odometry"}
     assert series
     json.dumps(m, allow_nan=False)
+
+
+@pytest.fixture(scope="module")
+def merged_twins(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """The fixture's fire_site twice with the same seed: merged without a calibration error
+    and with one (5 cm per axis per lidar, no rotation): the same beams, the same hits, the
+    second's points moved by their lidar's error."""
+    from worker.synth.generator import SynthConfig, generate
+
+    root = tmp_path_factory.mktemp("twins")
+    out = []
+    for name, err in (("exact", (0.0, 0.0)), ("merged", (0.0, 0.05))):
+        cfg = SynthConfig(
+            scene="fire_site", frames=20, scale=0.05, lidar_density=0.5, lidar_merge_error=err
+        )
+        generate(root / name, cfg)
+        out.append(root / name)
+    return out[0], out[1]
+
+
+def test_return_clicks_see_the_merged_clouds_calibration_error(merged_twins) -> None:
+    """The operator clicks where the beam truly hit: on the cloud merged with an error the
+    return clicks are those of its error-free twin (the same hits), the recorded-return
+    clicks are not; with the true poses the RPE of the return clicks is then the cloud's
+    calibration error seen in the image (the calibration point is a point of that cloud),
+    that of the recorded-return clicks hundredths of a pixel as on the exact cloud."""
+    from geometry.geodesy import WorldFrame
+    from worker.evaluation.evaluate import merge_errors_of
+    from worker.preparation.registration import register_clouds
+
+    exact, merged = merged_twins
+    errors = merge_errors_of(merged)
+    assert merge_errors_of(exact) == {} and len(errors) >= 2
+    shift = [np.linalg.norm(E[:3, 3]) for E in errors.values()]
+    assert 0.02 < np.median(shift) < 0.2  # what the error is: centimetres per lidar
+    want = synthetic_clicks(exact, CAMS)
+    got = synthetic_clicks(merged, CAMS)
+    recorded = synthetic_clicks(merged, CAMS, click_target="return_recorded")
+    assert [c.landmark for c in got] == [c.landmark for c in want] and want
+    moved: dict[str, list[float]] = {c: [] for c in CAMS}
+    for w, g, r in zip(want, got, recorded, strict=True):
+        assert g.uv.keys() == w.uv.keys()
+        for cam, frames in w.uv.items():
+            for f, uv in frames.items():
+                np.testing.assert_allclose(g.uv[cam][f], uv, atol=0.05)  # float32 points
+                if f in r.uv.get(cam, {}):
+                    moved[cam].append(np.linalg.norm(r.uv[cam][f] - uv))
+    c2 = "rgb_highres_center"
+    assert moved[c2] and np.median(moved[c2]) > 1.0  # the recorded returns are elsewhere
+
+    s = Sequence.open(merged)
+    truth = PoseTrack.from_csv(merged / "ground_truth/poses.csv")
+    world = WorldFrame.from_json(json.loads((merged / "ground_truth/world.json").read_text()))
+    cloud = register_clouds(s, truth, voxel_size=0.05, frames=s.frame_indices, max_range=90.0)
+    tracks = {"truth": (truth, cloud.xyz)}
+    m_ret, _ = evaluate_strategies(merged, tracks, world=world, cameras=CAMS, clicks=got)
+    m_rec, _ = evaluate_strategies(merged, tracks, world=world, cameras=CAMS, clicks=recorded)
+    for cam in CAMS:
+        assert m_rec["rpe"][cam]["truth"]["rpe_mean"] < 0.1
+        # each click's recorded return projected with the true poses is the error the cloud
+        # shows at the click (6 / 10 px here); the calibration point, the cloud point
+        # nearest the clicks' rays, is that return or a point of another lidar's, shifted
+        # by another error: the RPE is of the errors' size, at most the recorded return's
+        ret = m_ret["rpe"][cam]["truth"]["rpe_mean"]
+        assert 0.25 * np.median(moved[cam]) < ret < 1.1 * np.mean(moved[cam]), cam
+
+
+def test_corrected_cloud_gives_the_return_clicks_back(merged_twins) -> None:
+    """The merge error undone exactly (every lidar's correction E^-1, applied to the
+    registered cloud and, through ``lidar_corrections``, to the full-density points): with
+    the true poses the RPE of the return clicks is hundredths of a pixel again."""
+    from geometry.geodesy import WorldFrame
+    from worker.evaluation.evaluate import merge_errors_of
+    from worker.preparation.frame_clouds import FrameClouds
+    from worker.preparation.registration import register_clouds
+
+    _, merged = merged_twins
+    exact = {s: np.linalg.inv(E) for s, E in merge_errors_of(merged).items()}
+    s = Sequence.open(merged)
+    truth = PoseTrack.from_csv(merged / "ground_truth/poses.csv")
+    world = WorldFrame.from_json(json.loads((merged / "ground_truth/world.json").read_text()))
+    clouds = FrameClouds(s, max_range=90.0)
+    clouds.set_corrections(exact)
+    cloud = register_clouds(
+        s, truth, voxel_size=0.05, frames=s.frame_indices, max_range=90.0, clouds=clouds
+    )
+    m, _ = evaluate_strategies(
+        merged, {"truth": (truth, cloud.xyz)}, world=world, cameras=CAMS,
+        lidar_corrections=exact,
+    )  # fmt: skip
+    assert m["lidar_corrections"] == sorted(exact)
+    for cam in CAMS:
+        assert m["rpe"][cam]["truth"]["rpe_mean"] < 0.1, cam
+
+
+def test_corrections_read_back_from_the_summary() -> None:
+    """A preparation summary's ``lidar_alignment`` gives back the applied corrections only."""
+    from worker.preparation.lidar_alignment import (
+        LidarAlignment,
+        SensorCorrection,
+        corrections_from_summary,
+    )
+
+    def corr(s: int, applied: bool) -> SensorCorrection:
+        T = np.eye(4)
+        T[:3, 3] = [0.01 * s, -0.02, 0.005]
+        return SensorCorrection(
+            s, T, applied, "" if applied else "halves disagree", 500, (250, 250), 0.001,
+            0.001, 0.001, 0.001, 0.02, 0.01,
+        )  # fmt: skip
+
+    alignment = LidarAlignment(0, {1: corr(1, True), 2: corr(2, False), 3: corr(3, True)})
+    back = corrections_from_summary(json.loads(json.dumps(alignment.summary())))
+    assert sorted(back) == [1, 3]
+    for k, T in alignment.corrections().items():
+        np.testing.assert_array_equal(back[k], T)
+    assert corrections_from_summary(None) == {}

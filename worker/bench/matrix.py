@@ -371,7 +371,10 @@ def run_cell(cell: Cell, root: Path, *, keep: bool = False) -> dict[str, Any]:
     )
     tracks[TRUTH] = (truth_here, cloud.xyz)
     try:
-        metrics, _ = evaluate_strategies(folder, tracks, world=inp.world, cameras=list(CAMERAS))
+        corrections = None if setup.alignment is None else setup.alignment.corrections()
+        metrics, _ = evaluate_strategies(
+            folder, tracks, world=inp.world, cameras=list(CAMERAS), lidar_corrections=corrections
+        )
 
         def paper(s: str) -> dict[str, dict[str, Any]]:
             return {

@@ -16,6 +16,7 @@ from typing import Any
 
 from worker.evaluation.evaluate import evaluate_strategies
 from worker.preparation.config import PrepareConfig
+from worker.preparation.lidar_alignment import corrections_from_summary
 from worker.preparation.prepare import run_preparation
 from worker.synth.generator import SynthConfig, generate
 
@@ -105,18 +106,20 @@ def run_sequence(
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Rows of one sequence (every strategy, both cameras) and its evaluation metrics."""
 
-    tracks, prep, world = {}, {}, None
+    tracks, prep, world, corrections = {}, {}, None, None
     for strat in s.strategies:
         prepared, sec = prepare_timed(seq, strat, s.voxel_size)
         tracks[strat] = (prepared.track, prepared.cloud.xyz)
         prep[strat] = {"seconds": sec, "warnings": prepared.summary.get("warnings", [])}
         world = prepared.world
+        corrections = corrections_from_summary(prepared.summary.get("lidar_alignment"))
         if prepared_out is not None:
             prepared_out[strat] = prepared
         log.info("bench %s %s: prepared in %.1f s", scene, strat, sec)
     metrics, per_frame = evaluate_strategies(
-        seq, tracks, world=world, cameras=list(CAMERAS), preparation=prep
-    )
+        seq, tracks, world=world, cameras=list(CAMERAS), preparation=prep,
+        lidar_corrections=corrections,
+    )  # fmt: skip
     rows = []
     for cam in CAMERAS:
         for strat in s.strategies:

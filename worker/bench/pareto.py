@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt
 
 from worker.bench.paper import prepare_timed
 from worker.evaluation.evaluate import evaluate_strategies
+from worker.preparation.lidar_alignment import corrections_from_summary
 
 
 def config_name(strategy: str, voxel_size: float) -> str:
@@ -40,6 +41,7 @@ def run_configs(
         m, _ = evaluate_strategies(
             seq, {strategy: (prepared.track, prepared.cloud.xyz)}, world=prepared.world,
             cameras=[camera],
+            lidar_corrections=corrections_from_summary(prepared.summary.get("lidar_alignment")),
         )  # fmt: skip
         st = m["rpe"].get(camera, {}).get(strategy, {})
         out.append(

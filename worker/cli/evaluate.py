@@ -19,6 +19,7 @@ from worker.evaluation.evaluate import (
 from worker.evaluation.tables import strategy_rpe_table
 from worker.preparation.calibration_point import Clicks, ClicksError
 from worker.preparation.config import PrepareConfig
+from worker.preparation.lidar_alignment import corrections_from_summary
 from worker.preparation.prepare import prepare
 
 
@@ -35,12 +36,13 @@ def run(args: argparse.Namespace) -> int:
     except (ClicksError, ValueError) as exc:
         raise CliError(str(exc)) from exc
     cache = args.cache_dir or get_settings().prepared_cache_dir
-    tracks, prep, world = {}, {}, None
+    tracks, prep, world, corrections = {}, {}, None, None
     for s, cfg in configs.items():
         t0 = time.perf_counter()
         prepared = prepare(args.sequence, cfg, cache_dir=cache)
         tracks[s] = (prepared.track, prepared.cloud.xyz)
         world = prepared.world
+        corrections = corrections_from_summary(prepared.summary.get("lidar_alignment"))
         prep[s] = {
             "seconds": time.perf_counter() - t0,
             "reused": bool(prepared.summary.get("reused")),
@@ -57,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
             args.sequence, tracks, world=world, cameras=cameras, clicks=clicks,
             near=args.near, far=args.far, click_noise_px=args.click_noise, seed=args.seed,
             max_landmarks=args.max_landmarks, preparation=prep, click_target=args.click_target,
-            **dense_kw,
+            lidar_corrections=corrections, **dense_kw,
         )  # fmt: skip
     except (ClicksError, ValueError) as exc:
         raise CliError(str(exc)) from exc

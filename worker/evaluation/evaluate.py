@@ -25,9 +25,12 @@ frame i and that point projected with frame i's pose at the camera's own timesta
 J_i = |RPE_{i+1} - RPE_i| between consecutive frame counters. Clicks come from a file
 (real data, formats in ``calibration_point.py`` / the README) or, on synthetic sequences,
 from the ground truth: every landmark the lidar measured (a return within 0.25 m, true
-poses), the true full-resolution pixel of that nearest return, the point seen in both the
-image and the cloud (or of the landmark itself, ``click_target="landmark"``; optionally
-with Gaussian click noise) in the frames where the landmark is in view and the point
+poses), the true full-resolution pixel of that nearest return where its beam truly hit,
+the point seen in both the image and the cloud (the merged cloud's calibration error
+undone: the calibration point carries it, as on real data;
+``click_target="return_recorded"`` clicks the return where the cloud puts it,
+``"landmark"`` the landmark itself; optionally with Gaussian click noise) in the frames
+where the landmark is in view and the point
 ``near``-``far`` m in front of the camera (default 30-80 m). Pixels are
 at the camera's full resolution. Means and standard deviations pool every observation of
 every landmark; ``landmark_mean`` is the mean over landmarks of their RPE means.
@@ -36,8 +39,9 @@ metrics.json keys (:func:`evaluate_strategies`):
 
 - ``sequence``, ``frames``, ``cameras``, ``strategies``, ``clicks_source``
   ("file" | "ground_truth"), ``near_m``, ``far_m``, ``click_noise_px``, ``click_target``
-  ("return" | "landmark", synthetic clicks), ``dense_radius_m``
-  (the calibration point's full-density refinement radius, 0: the registered cloud only);
+  ("return" | "return_recorded" | "landmark", synthetic clicks), ``dense_radius_m``
+  (the calibration point's full-density refinement radius, 0: the registered cloud only),
+  ``lidar_corrections`` (the sensors whose preparation correction those points carry);
 - ``rpe[camera][strategy]`` = {``rpe_mean``, ``rpe_std``, ``rpe_max``, ``jitter_mean``,
   ``jitter_std``, ``jitter_max``, ``n``, ``n_jitter``, ``landmark_mean``,
   ``landmarks`` {name: {same statistics, ``calibration_xyz``, ``frames``}}};
@@ -83,6 +87,7 @@ from worker.preparation.calibration_point import (
 )
 from worker.preparation.config import CalibrationConfig
 from worker.preparation.frame_clouds import FrameClouds
+from worker.preparation.lidar_alignment import corrections_from_summary
 from worker.preparation.registration import dense_points
 
 log = logging.getLogger(__name__)
@@ -227,6 +232,7 @@ def evaluate_sequence(
             paper, _ = evaluate_strategies(
                 seq_folder, tracks_from_prepared(prepared), world=prepared.world,
                 cameras=cameras or None, clicks=clicks,
+                lidar_corrections=corrections_from_summary(s.get("lidar_alignment")),
             )  # fmt: skip
             metrics["paper_rpe"] = paper["rpe"]
             metrics["landmarks_clicked"] = paper["landmarks_clicked"]
@@ -287,10 +293,15 @@ LIDAR_SUPPORT_M = SPHERE_RADIUS_M
 SUPPORT_SEARCH_M = 2.0
 #: What the synthetic operator clicks on a measured landmark: "return", the image point of
 #: the lidar return nearest the landmark (the point seen in both the image and the cloud
-#: that the paper's operator picks); "landmark", the landmark itself (a pole top: the RPE
-#: then carries the landmark's distance to its nearest return, 0.1-0.2 m below or beside it
-#: on sparse clouds, 5-20 px at 50-70 m on rgb_highres_center with perfect poses).
-CLICK_TARGETS = ("return", "landmark")
+#: that the paper's operator picks) where its beam truly hit: the merged cloud's
+#: calibration error (``ground_truth/lidar_merge_errors.json``) undone, as an operator
+#: clicking the physical feature sees it, so the RPE carries what is left of that error in
+#: the cloud the calibration point is taken from; "return_recorded", the same return where
+#: the merged cloud puts it (the click moves with the calibration error, which the measure
+#: then does not see); "landmark", the landmark itself (a pole top: the RPE then carries
+#: the landmark's distance to its nearest return, 0.1-0.2 m below or beside it on sparse
+#: clouds, 5-20 px at 50-70 m on rgb_highres_center with perfect poses).
+CLICK_TARGETS = ("return", "return_recorded", "landmark")
 
 
 def _camera_times(seq: Any, camera: str) -> dict[int, float]:
@@ -344,6 +355,32 @@ def cloud_for_track(prepared: PreparedSequence, track: Any) -> np.ndarray:
     return out
 
 
+def merge_errors_of(seq_folder: str | Path) -> dict[int, np.ndarray]:
+    """sensor_index -> (4, 4) merge error E of a synthetic sequence (the generator placed
+    sensor s's true base points p at ``E p`` in the merged cloud); ``{}`` when the
+    sequence has none (merged without error, or not synthetic)."""
+    f = Path(seq_folder) / "ground_truth" / "lidar_merge_errors.json"
+    if not f.is_file():
+        return {}
+    return {
+        int(k): np.asarray(v, dtype=np.float64).reshape(4, 4)
+        for k, v in json.loads(f.read_text()).items()
+    }
+
+
+def _undo(clouds: Any, merge_errors: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """sensor_index -> (4, 4) taking the points ``clouds`` serves (their corrections
+    applied, ``p = C E p_true``) back to the points' true positions: E^-1 C^-1."""
+    corr = dict(getattr(clouds, "corrections", {}) or {})
+    out = {}
+    for s in set(corr) | set(merge_errors):
+        M = np.linalg.inv(corr.get(s, np.eye(4)))
+        if s in merge_errors:
+            M = np.linalg.inv(merge_errors[s]) @ M
+        out[int(s)] = M
+    return out
+
+
 def synthetic_clicks(
     seq_folder: str | Path,
     cameras: list[str],
@@ -370,12 +407,16 @@ def synthetic_clicks(
     The paper's operator clicks a landmark seen in both the image and the cloud; a pole top
     no beam ever hit has no calibration point, only points of other surfaces near its rays,
     and its RPE with the true poses is tens of pixels (:func:`nearest_returns`). The point
-    clicked is, with ``click_target="return"``, the landmark's nearest return as the
-    merged cloud holds it (registered with the true poses; its range noise and the merge's
-    calibration error included: the measure does not see the cloud's own calibration
-    error, which a real operator clicking the physical feature would); with
-    ``"landmark"`` the landmark itself (:data:`CLICK_TARGETS`). ``clouds``: the sequence's
-    :class:`~worker.preparation.frame_clouds.FrameClouds` if already read."""
+    clicked is, with ``click_target="return"``, the landmark's nearest return where its
+    beam truly hit (the merge's calibration error of its sensor undone with the ground
+    truth, :func:`merge_errors_of`; its range noise, millimetres along a ray nearly the
+    camera's, stays): a real operator clicks the physical feature, and the calibration
+    point, a point of the merged cloud, carries the cloud's calibration error into the
+    RPE; with ``"return_recorded"`` the same return as the merged cloud holds it (the
+    click moves with the error); with ``"landmark"`` the landmark itself
+    (:data:`CLICK_TARGETS`). ``clouds``: the sequence's
+    :class:`~worker.preparation.frame_clouds.FrameClouds` if already read (its
+    corrections, if any, are undone for the search)."""
 
     folder = Path(seq_folder)
     gt = folder / "ground_truth"
@@ -390,9 +431,11 @@ def synthetic_clicks(
     target: dict[str, np.ndarray] = {}  # landmark -> the 3D point clicked, if not itself
     if lidar_support_m > 0 and landmarks:
         xyz = np.array([lm["xyz"] for lm in landmarks], dtype=np.float64).reshape(-1, 3)
-        d, p_ret = nearest_returns(clouds if clouds is not None else _frame_clouds(seq), truth, xyz)
+        clouds = clouds if clouds is not None else _frame_clouds(seq)
+        errors = merge_errors_of(folder) if click_target != "return_recorded" else {}
+        d, p_ret = nearest_returns(clouds, truth, xyz, undo=_undo(clouds, errors))
         measured = {lm["id"] for lm, di in zip(landmarks, d, strict=True) if di <= lidar_support_m}
-        if click_target == "return":  # the unmeasured ones too, for the fallback below
+        if click_target != "landmark":  # the unmeasured ones too, for the fallback below
             target = {lm["id"]: p_ret[i] for i, lm in enumerate(landmarks) if np.isfinite(d[i])}
     rng = np.random.default_rng(seed)
     scored = []
@@ -439,11 +482,14 @@ def synthetic_clicks(
 
 
 def nearest_returns(
-    clouds: Any, track: Any, xyz_world: np.ndarray
+    clouds: Any, track: Any, xyz_world: np.ndarray, undo: dict[int, np.ndarray] | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """The lidar return of any frame of ``clouds`` (full density as read, registered with
     ``track``) nearest each landmark (m, 3) world: (distance (m,) m, inf where none is
-    within :data:`SUPPORT_SEARCH_M`; the return (m, 3) float64 world, NaN there)."""
+    within :data:`SUPPORT_SEARCH_M`; the return (m, 3) float64 world, NaN there).
+
+    ``undo``: sensor_index -> (4, 4) applied to that sensor's base points first (``p' = R
+    p + t``; :func:`_undo` gives the one to the points' true positions)."""
     best = np.full(len(xyz_world), np.inf)
     p_world = np.full((len(xyz_world), 3), np.nan)
     frames = clouds.frames
@@ -452,7 +498,8 @@ def nearest_returns(
     T_all = track.interpolate(np.array([clouds.frame_times[f] for f in frames]))
     for f, T in zip(frames, T_all, strict=True):
         lm_base = (xyz_world - T[:3, 3]) @ T[:3, :3]  # the landmarks in the frame's base
-        p_base = clouds.get(f).p_base32
+        fc = clouds.get(f)
+        p_base = fc.p_base32 if not undo else _moved(fc.p_base32, fc.sensor_index, undo)
         # the points within reach of some landmark, then each landmark's nearest among them
         d, _ = cKDTree(lm_base).query(p_base, distance_upper_bound=SUPPORT_SEARCH_M)
         near = np.flatnonzero(np.isfinite(d))
@@ -464,6 +511,16 @@ def nearest_returns(
         best[better] = dl[better]
         p_world[better] = p_near[j[better]] @ T[:3, :3].T + T[:3, 3]
     return best, p_world
+
+
+def _moved(p_base32: np.ndarray, sensor_index: np.ndarray, by: dict[int, np.ndarray]) -> np.ndarray:
+    """(n, 3) float64 base points, sensor s's moved by ``by[s]`` (``p' = R p + t``)."""
+    p = p_base32.astype(np.float64)
+    for s, M in by.items():
+        sel = sensor_index == s
+        if np.any(sel):
+            p[sel] = p[sel] @ M[:3, :3].T + M[:3, 3]
+    return p
 
 
 def rpe_from_clicks(
@@ -729,6 +786,7 @@ def evaluate_strategies(
     preparation: dict[str, Any] | None = None,
     dense_radius_m: float = DENSE_RADIUS_M,
     click_target: str = "return",
+    lidar_corrections: dict[int, np.ndarray] | None = None,
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """The paper's RPE and jitter per camera and strategy (module docstring).
 
@@ -744,6 +802,10 @@ def evaluate_strategies(
     dense_radius_m : refine each calibration point among the full-density points of every
         frame within this radius (m), registered with the strategy's poses; 0: the paper's
         point of the given cloud only.
+    lidar_corrections : sensor_index -> (4, 4), the preparation's per-lidar corrections
+        (:func:`~worker.preparation.lidar_alignment.corrections_from_summary`), applied to
+        those full-density points as the preparation applied them to the clouds it
+        registered (the tracks' clouds); None: the points as recorded.
 
     Returns
     -------
@@ -775,11 +837,14 @@ def evaluate_strategies(
         "click_noise_px": click_noise_px if source == "ground_truth" else None,
         "click_target": click_target if source == "ground_truth" else None,
         "dense_radius_m": dense_radius_m,
+        "lidar_corrections": sorted(int(k) for k in (lidar_corrections or {})),
         "rpe": {},
     }
 
     rows: list[dict[str, Any]] = []
     clouds = clouds if dense_radius_m > 0 else None
+    if clouds is not None and lidar_corrections:
+        clouds.set_corrections(lidar_corrections)
     for strategy, (track, xyz) in tracks.items():
         dense = rays = None
         if clouds is not None:

@@ -220,6 +220,20 @@ class LidarAlignment:
         }
 
 
+def corrections_from_summary(summary: dict[str, Any] | None) -> dict[int, F64]:
+    """sensor_index -> (4, 4) correction of the applied sensors, read back from
+    :meth:`LidarAlignment.summary` (a preparation summary's ``lidar_alignment``; ``{}``
+    for None: the step was off)."""
+    if not summary:
+        return {}
+    applied = {int(s) for s in summary.get("applied", [])}
+    return {
+        int(s): np.asarray(c["T_ref_sensor"], dtype=np.float64).reshape(4, 4)
+        for s, c in summary.get("sensors", {}).items()
+        if int(s) in applied
+    }
+
+
 # ------------------------------------------------------------------------- the frames
 @dataclass
 class _Sensor:

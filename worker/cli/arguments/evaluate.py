@@ -29,9 +29,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--far", type=float, default=80.0, help="m, synthetic landmarks to")
     p.add_argument("--click-noise", type=float, default=0.0, help="px, synthetic click noise")
     p.add_argument(
-        "--click-target", choices=["return", "landmark"], default="return",
-        help="synthetic clicks on the lidar return nearest each landmark (default) or on the "
-        "landmark itself (its RPE then includes its distance to the nearest return)",
+        "--click-target", choices=["return", "return_recorded", "landmark"], default="return",
+        help="synthetic clicks on the lidar return nearest each landmark where its beam truly "
+        "hit (default: the RPE carries the merged cloud's calibration error, as a real "
+        "operator's would), on that return where the merged cloud puts it (return_recorded), "
+        "or on the landmark itself (its RPE then includes its distance to the nearest return)",
     )  # fmt: skip
     p.add_argument("--max-landmarks", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
