@@ -86,7 +86,7 @@ from worker.preparation.calibration_point import (
     points_near_rays,
 )
 from worker.preparation.config import CalibrationConfig
-from worker.preparation.frame_clouds import FrameClouds
+from worker.preparation.frame_clouds import FrameClouds, move_per_sensor
 from worker.preparation.lidar_alignment import corrections_from_summary
 from worker.preparation.registration import dense_points
 
@@ -499,7 +499,10 @@ def nearest_returns(
     for f, T in zip(frames, T_all, strict=True):
         lm_base = (xyz_world - T[:3, 3]) @ T[:3, :3]  # the landmarks in the frame's base
         fc = clouds.get(f)
-        p_base = fc.p_base32 if not undo else _moved(fc.p_base32, fc.sensor_index, undo)
+        p_base = fc.p_base32
+        if undo:
+            p_base = fc.p_base
+            move_per_sensor(p_base, fc.sensor_index, undo)
         # the points within reach of some landmark, then each landmark's nearest among them
         d, _ = cKDTree(lm_base).query(p_base, distance_upper_bound=SUPPORT_SEARCH_M)
         near = np.flatnonzero(np.isfinite(d))
@@ -511,16 +514,6 @@ def nearest_returns(
         best[better] = dl[better]
         p_world[better] = p_near[j[better]] @ T[:3, :3].T + T[:3, 3]
     return best, p_world
-
-
-def _moved(p_base32: np.ndarray, sensor_index: np.ndarray, by: dict[int, np.ndarray]) -> np.ndarray:
-    """(n, 3) float64 base points, sensor s's moved by ``by[s]`` (``p' = R p + t``)."""
-    p = p_base32.astype(np.float64)
-    for s, M in by.items():
-        sel = sensor_index == s
-        if np.any(sel):
-            p[sel] = p[sel] @ M[:3, :3].T + M[:3, 3]
-    return p
 
 
 def rpe_from_clicks(
@@ -816,6 +809,8 @@ def evaluate_strategies(
     seq = Sequence.open(folder)
     has_gt = (folder / "ground_truth" / "landmarks.json").is_file()
     clouds = _frame_clouds(seq) if dense_radius_m > 0 or (clicks is None and has_gt) else None
+    if clouds is not None and lidar_corrections:  # the synthetic clicks undo them
+        clouds.set_corrections(lidar_corrections)
     clicks, source = _clicks(
         folder, seq, clicks, cameras, has_gt=has_gt, near=near, far=far,
         click_noise_px=click_noise_px, seed=seed, max_landmarks=max_landmarks, clouds=clouds,
@@ -843,8 +838,6 @@ def evaluate_strategies(
 
     rows: list[dict[str, Any]] = []
     clouds = clouds if dense_radius_m > 0 else None
-    if clouds is not None and lidar_corrections:
-        clouds.set_corrections(lidar_corrections)
     for strategy, (track, xyz) in tracks.items():
         dense = rays = None
         if clouds is not None:

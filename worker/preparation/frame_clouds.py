@@ -95,11 +95,7 @@ class FrameClouds:
         si = np.zeros(n, np.uint8) if si is None else np.asarray(si).astype(np.uint8, copy=False)
         it = f.get("intensity")
         it = np.zeros(n, np.float32) if it is None else np.asarray(it, dtype=np.float32)
-        for s, T in self.corrections.items():
-            sel = si == s
-            if np.any(sel):
-                q = p[sel].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
-                p[sel] = q.astype(np.float32)
+        move_per_sensor(p, si, self.corrections)
         r2 = _squared_norms(p)
         if float(r2.max(initial=0.0)) > self.max_range**2:
             keep = np.flatnonzero(r2 <= self.max_range**2)
@@ -120,6 +116,20 @@ class FrameClouds:
             c.p_base32.nbytes + c.sensor_index.nbytes + c.intensity.nbytes
             for c in self._cache.values()
         )
+
+
+def move_per_sensor(
+    p_base: NDArray[np.floating],
+    sensor_index: NDArray[np.uint8],
+    by: dict[int, NDArray[np.float64]],
+) -> None:
+    """Move sensor s's rows of the (n, 3) base points ``p_base`` by ``by[s]`` (4, 4),
+    ``p' = R p + t``, in place (computed in float64, stored in ``p_base``'s dtype)."""
+    for s, T in by.items():
+        sel = sensor_index == s
+        if np.any(sel):
+            q = p_base[sel].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+            p_base[sel] = q.astype(p_base.dtype, copy=False)
 
 
 def _squared_norms(p: NDArray[np.float32]) -> NDArray[np.float32]:
