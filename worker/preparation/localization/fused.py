@@ -56,9 +56,9 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import LinAlgError, cho_factor, cho_solve
+from scipy.linalg import LinAlgError, cho_factor, cho_solve, lapack
 from scipy.ndimage import median_filter
-from scipy.sparse import coo_matrix, csc_matrix, diags, identity
+from scipy.sparse import coo_matrix, csc_matrix, csr_matrix, diags, identity
 from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
 
@@ -2275,15 +2275,41 @@ def redundancy(
     except LinAlgError:
         return None
     if rows is None:
-        Jd = J.toarray()
-        h = w * np.einsum("ij,ij->i", Jd, cho_solve(cf, Jd.T, check_finite=False).T)
-        return r, w, 1.0 - h
+        inv = _inverse_from_cholesky(cf)
+        if inv is None:
+            return None
+        return r, w, 1.0 - w * _quadratic_forms(J.tocsr(), inv)
     rows = np.where(rows < 0, rows + len(r), rows)
     Jr = J.tocsr()[rows].toarray()
     one_minus_h = np.full(len(r), np.nan)
     h_rows = w[rows] * np.einsum("ij,ij->i", Jr, cho_solve(cf, Jr.T, check_finite=False).T)
     one_minus_h[rows] = 1.0 - h_rows
     return r, w, one_minus_h
+
+
+def _inverse_from_cholesky(cf: tuple[F64, bool]) -> F64 | None:
+    """(n, n) inverse of the matrix factorised by ``cho_factor`` (LAPACK ``potri``: a third
+    of the work of solving against the identity), or None where LAPACK refuses it."""
+    c, lower = cf
+    inv, info = lapack.dpotri(c, lower=lower)
+    if info != 0:
+        return None
+    tri = np.tril(inv) if lower else np.triu(inv)
+    return tri + tri.T - np.diag(np.diag(tri))
+
+
+def _quadratic_forms(J: csr_matrix, M: F64) -> F64:
+    """Per row i of the sparse (m, n) ``J``: ``J_i M J_i^T`` for the dense (n, n) ``M``,
+    (m,), from the pairs of each row's nonzeros only (a 100-frame problem: 5180 rows of
+    14.5 nonzeros, 1.1 M products against 5.7 M of a dense ``J M``)."""
+    nnz = np.diff(J.indptr)
+    row_of = np.repeat(np.arange(J.shape[0]), nnz)
+    width = nnz[row_of]  # for each nonzero p: its row's nonzero count
+    p = np.repeat(np.arange(J.nnz), width)
+    first = np.repeat(J.indptr[row_of], width)
+    q = first + np.arange(len(p)) - np.repeat(np.cumsum(width) - width, width)
+    vals = J.data[p] * J.data[q] * M[J.indices[p], J.indices[q]]
+    return np.bincount(row_of[p], weights=vals, minlength=J.shape[0])
 
 
 def variance_factors(
