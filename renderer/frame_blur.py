@@ -25,8 +25,10 @@ independent of the edge's contrast and direction. Per window (luma, 8-bit):
    computed in: the high one ``CANNY_HIGH`` times the gradient's noise std (from the
    window's pixel noise, Immerkaer's estimate) and at least the peak of a
    ``MIN_CONTRAST`` step blurred to ``MAX_SIGMA_PX``; outside the excluded pixels (the
-   object grown by ``EXCLUDE_GROW_PX``) and away from the window's border; at most
-   ``MAX_CANDIDATES`` (an even stride through them);
+   object grown by ``EXCLUDE_GROW_PX``) and away from the window's border; of those
+   across the motion (step 4, tested first), at most ``MAX_CANDIDATES`` (an even stride
+   through them: a cap taken before the direction test left a large textured window
+   with too few edges across a vertical motion, and the lens model's blur instead);
 2. only *isolated step edges* among them (:func:`renderer.sensor_noise.step_profiles`:
    a profile along the gradient of +-``STEP_HALF_PX`` with flat ends at least
    ``MIN_CONTRAST`` apart and no fall-back): texture (ballast, vegetation), noise and
@@ -199,9 +201,6 @@ def estimate_blur_sigma(
     gray = cv2.cvtColor(np.ascontiguousarray(sub), cv2.COLOR_RGB2GRAY).astype(np.float32)
     gx, gy = _gradient(gray, DERIV_SIGMA_PX)
     vs, us = np.nonzero(candidate_pixels(gray, gx, gy, exclude))
-    if len(vs) > MAX_CANDIDATES:
-        pick = np.linspace(0, len(vs) - 1, MAX_CANDIDATES).astype(np.intp)
-        vs, us = vs[pick], us[pick]
     ex, ey = gx[vs, us].astype(np.float64), gy[vs, us].astype(np.float64)
     mag = np.maximum(np.hypot(ex, ey), 1e-9)
     normals = np.stack([ex / mag, ey / mag], 1)
@@ -209,6 +208,9 @@ def estimate_blur_sigma(
         d = np.asarray(motion_uv, np.float64) / np.hypot(*motion_uv)
         across = np.abs(normals @ d) < 0.5
         vs, us, normals = vs[across], us[across], normals[across]
+    if len(vs) > MAX_CANDIDATES:  # the cap after the direction test: it bounds the work
+        pick = np.linspace(0, len(vs) - 1, MAX_CANDIDATES).astype(np.intp)
+        vs, us, normals = vs[pick], us[pick], normals[pick]
     if len(vs) < MIN_EDGE_PIXELS:
         return None
     pts = np.stack([us, vs], 1).astype(np.float64)

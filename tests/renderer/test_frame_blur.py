@@ -143,6 +143,25 @@ def test_edges_along_the_motion_are_left_out() -> None:
     assert est is not None and abs(est / true_spread(1.2) - 1.0) <= TOL
 
 
+def test_edges_across_the_motion_are_kept_among_many_along_it() -> None:
+    """Dense horizontal stripes (edges along a vertical motion: over 12k candidates) around
+    a bar whose vertical sides (about 100 edge pixels) are the only edges across it: the
+    candidate cap must not thin the few usable ones out (a cap taken before the direction
+    test kept a third of them, too few for an estimate)."""
+    scene = np.full((H * S, W * S), 60.0, np.float32)
+    for y in [*range(0, H // 2, 6), *range(H // 2 + 90, H, 6)]:
+        scene[y * S : (y + 3) * S, :] = 180.0
+    scene[(H // 2 + 20) * S : (H // 2 + 70) * S, 150 * S + 3 : 170 * S + 3] = 190.0
+    img = camera(scene, 1.2, 2.0, 4)
+    gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    from renderer.frame_blur import DERIV_SIGMA_PX, MAX_CANDIDATES, _gradient
+
+    gx, gy = _gradient(gray, DERIV_SIGMA_PX)
+    assert candidate_pixels(gray, gx, gy, None).sum() > 3 * MAX_CANDIDATES
+    est = estimate_blur_sigma(img, (0, 0, W, H), None, motion_uv=(0.0, 4.0))
+    assert est is not None and abs(est / true_spread(1.2) - 1.0) <= TOL, est
+
+
 @pytest.mark.parametrize("sigma", [0.3, 0.49, 1.0, 2.0])
 def test_the_composites_gaussian_delivers_the_variance_asked(sigma: float) -> None:
     """A point blurred by the composite's Gaussian spreads with variance sigma^2 in each
