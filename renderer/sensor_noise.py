@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
 
 BIN_EDGES = np.array([0, 24, 48, 80, 112, 144, 176, 208, 256], np.float64)
 MIN_BIN_SAMPLES = 150
@@ -258,7 +259,11 @@ def silhouette_band(coverage: NDArray[np.float32]) -> NDArray[np.bool_]:
 
 
 def sharpness_inside_outside(
-    out_rgb: NDArray[np.uint8], roi: tuple[int, int, int, int], alpha: NDArray, ring_px: int = 48
+    out_rgb: NDArray[np.uint8],
+    roi: tuple[int, int, int, int],
+    alpha: NDArray,
+    ring_px: int = 48,
+    real_rgb: NDArray[np.uint8] | None = None,
 ) -> tuple[float, float]:
     """(median edge sigma of the object's silhouette, median edge sigma of the real
     edges in a ring of ``ring_px`` around it) in the composited frame, px; NaN where
@@ -268,9 +273,10 @@ def sharpness_inside_outside(
     mask will do), smoothed by a Gaussian of 1 px, crosses 0.5, with the object on one
     side and the background on the other (coverage differing by ``SIDE_CONTRAST``
     ``SIDE_PX`` to either side); real edges: those outside the object's mask grown by
-    7 px."""
-    gray = cv2.cvtColor(np.asarray(out_rgb), cv2.COLOR_RGB2GRAY).astype(np.float32)
-    H, W = gray.shape
+    7 px, read in ``real_rgb`` (the frame before the object was added) when given: in the
+    composited frame the ring also holds the object's own shadow, whose edges are not the
+    camera's."""
+    H, W = np.asarray(out_rgb).shape[:2]
     u0, v0, u1, v1 = roi
     a = np.zeros((H, W), np.float32)
     a[v0:v1, u0:u1] = alpha
@@ -279,11 +285,18 @@ def sharpness_inside_outside(
     obj = (a > 0.02).astype(np.uint8)
     near = cv2.dilate(obj, np.ones((2 * ring_px + 1,) * 2, np.uint8)).astype(bool)
     away = ~cv2.dilate(obj, np.ones((15, 15), np.uint8)).astype(bool)
-    canny = cv2.Canny(np.clip(gray, 0, 255).astype(np.uint8), 40, 100).astype(bool)
-    sm = cv2.GaussianBlur(gray, (5, 5), 1.0)
-    ix, iy = cv2.Sobel(sm, cv2.CV_32F, 1, 0), cv2.Sobel(sm, cv2.CV_32F, 0, 1)
 
-    def sigmas(sel: NDArray[np.bool_], across: bool = False) -> F64:
+    def edges(rgb: NDArray[np.uint8]) -> tuple[F32, NDArray[np.bool_], F32, F32]:
+        gray = cv2.cvtColor(np.asarray(rgb), cv2.COLOR_RGB2GRAY).astype(np.float32)
+        canny = cv2.Canny(np.clip(gray, 0, 255).astype(np.uint8), 40, 100).astype(bool)
+        sm = cv2.GaussianBlur(gray, (5, 5), 1.0)
+        return gray, canny, cv2.Sobel(sm, cv2.CV_32F, 1, 0), cv2.Sobel(sm, cv2.CV_32F, 0, 1)
+
+    out_edges = edges(out_rgb)
+    real_edges = out_edges if real_rgb is None else edges(real_rgb)
+
+    def sigmas(img: tuple, sel: NDArray[np.bool_], across: bool = False) -> F64:
+        gray, _, ix, iy = img
         vs, us = np.nonzero(sel)
         nr = np.stack([ix[vs, us], iy[vs, us]], 1)
         nr /= np.maximum(np.linalg.norm(nr, axis=1, keepdims=True), 1e-9)
@@ -296,8 +309,8 @@ def sharpness_inside_outside(
             pts, nr = pts[keep], nr[keep]
         return edge_sigma_px(gray, pts, nr)
 
-    s_obj = sigmas(canny & silhouette, across=True)
-    s_real = sigmas(canny & near & away)
+    s_obj = sigmas(out_edges, out_edges[1] & silhouette, across=True)
+    s_real = sigmas(real_edges, real_edges[1] & near & away)
 
     def med(x: F64) -> float:
         x = x[np.isfinite(x)]

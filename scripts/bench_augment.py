@@ -20,7 +20,8 @@ output (``--look-frames`` frames per camera, the object's poly2d from the labels
 robust noise inside the object over the frame's noise at the same level measured around
 it (renderer/sensor_noise.py; the issue's bound [0.8, 1.25]), and the edge sigma of the
 object's silhouette over that of the real step edges around it (both read alike,
-``sharpness_inside_outside``; the same bound). With ``--origins`` (default
+``sharpness_inside_outside``; the real edges in the input frame, where the object's own
+shadow in the ring is not; the same bound). With ``--origins`` (default
 ``SEQ/ground_truth/lidar_origins.json`` when present) it also compares the lidar cast
 with per-sensor origins against the paper's single origin on every frame.
 """
@@ -144,7 +145,9 @@ def look_check(seq: Sequence, out: Path, cams: list[str], n_frames: int) -> dict
             want = prof.sigma_at(level[None])[0]
             got = np.array([robust_sigma(dst[..., c], inner) for c in range(3)])
             noise.append(float(np.median(got / np.maximum(want, 1e-6))))
-            s_obj, s_real = sharpness_inside_outside(dst, (0, 0, W, H), mask.astype(np.float32))
+            s_obj, s_real = sharpness_inside_outside(
+                dst, (0, 0, W, H), mask.astype(np.float32), real_rgb=src
+            )
             if np.isfinite(s_obj) and np.isfinite(s_real) and s_real > 0:
                 sharp.append(s_obj / s_real)
     res = {

@@ -179,6 +179,30 @@ def test_object_edges_as_sharp_as_the_frames() -> None:
     assert abs(s_real / want - 1.0) < 0.2
 
 
+def test_real_edges_read_in_the_frame_before_the_object() -> None:
+    """With ``real_rgb`` the ring's real edges are read in the frame the object was added
+    to: edges the composite changed around the object (its shadow's) do not count."""
+    r = square(0.5)
+    want = float(np.hypot(blur_sigma_px(r), FEATHER_SIGMA_PX))
+    rng = np.random.default_rng(12)
+    clean = np.full((H, W, 3), 50.0, np.float32)
+    for x in range(20, W, 40):
+        clean[:, x : x + 20] = 170.0
+    clean = cv2.GaussianBlur(clean, (0, 0), want)
+    img = np.clip(np.round(clean + rng.normal(0, 2.0, clean.shape)), 0, 255).astype(np.uint8)
+    out = composite(img, r, lab_match=False)
+    a = np.zeros((H, W), np.float32)
+    u0, v0, u1, v1 = r.roi
+    a[v0:v1, u0:u1] = r.alpha
+    ring = ~cv2.dilate((a > 0.02).astype(np.uint8), np.ones((11, 11), np.uint8)).astype(bool)
+    softened = out.copy()
+    softened[ring] = cv2.GaussianBlur(out, (0, 0), 1.5)[ring]  # like a soft shadow's edges
+    _, s_soft = sharpness_inside_outside(softened, r.roi, r.alpha)
+    _, s_real = sharpness_inside_outside(softened, r.roi, r.alpha, real_rgb=img)
+    assert s_soft > 1.5 * want, (s_soft, want)
+    assert abs(s_real / want - 1.0) < 0.2, (s_real, want)
+
+
 def test_edge_sigma_reads_steps_only() -> None:
     """Across a 5 px bar (its far side within the profile: a thin limb) no sigma is
     read, across a fine texture at most a quarter of the profiles (the monotonic
