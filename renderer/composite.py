@@ -75,19 +75,20 @@ NOISE_WINDOW_PX = 48
 _CHANGE_EPS = 1.0 / 4096.0
 
 
-def defocus_sigma_px(render: ObjectRender) -> float:
-    """Gaussian sigma (px) of the lens's defocus at the object's distance (module doc)."""
+def defocus_sigma_px(render: ObjectRender, aperture_m: float = APERTURE_M) -> float:
+    """Gaussian sigma (px) of the lens's defocus at the object's distance (module doc), for
+    an effective aperture diameter ``aperture_m`` (0: a pinhole)."""
     d = render.distance_m if np.isfinite(render.distance_m) and render.distance_m > 0 else 1e9
     # Median visible depth is the better distance when the object is there.
     if render.depth.size and np.any(np.isfinite(render.depth)):
         d = float(np.nanmedian(render.depth))
-    return float(render.focal_px * APERTURE_M / (4.0 * max(d, 0.1)))
+    return float(render.focal_px * aperture_m / (4.0 * max(d, 0.1)))
 
 
-def blur_sigma_px(render: ObjectRender) -> float:
+def blur_sigma_px(render: ObjectRender, aperture_m: float = APERTURE_M) -> float:
     """Gaussian sigma (px) of the object's optical blur at its distance (see module doc)."""
     scale = render.pixel_scale if render.pixel_scale > 0 else 1.0
-    return float(np.hypot(OPTICS_SIGMA_PX * scale, defocus_sigma_px(render)))
+    return float(np.hypot(OPTICS_SIGMA_PX * scale, defocus_sigma_px(render, aperture_m)))
 
 
 def _window(render: ObjectRender, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
@@ -117,15 +118,17 @@ def frame_blur(
     return estimate_blur_sigma(frame_rgb, win, _object_mask(render, win), motion_uv)
 
 
-def gaussian_sigma_px(render: ObjectRender, frame_sigma: float | None) -> float:
+def gaussian_sigma_px(
+    render: ObjectRender, frame_sigma: float | None, aperture_m: float = APERTURE_M
+) -> float:
     """The Gaussian the object layer gets (module doc, steps 2 and 3): the frame's own
     blur less the render's own edge spread (``render.edge_var_px2``, px^2), never below
     the lens's defocus at the object's distance; without a frame estimate the lens model
     with the feather."""
     if frame_sigma is None:
-        return float(np.hypot(blur_sigma_px(render), FEATHER_SIGMA_PX))
+        return float(np.hypot(blur_sigma_px(render, aperture_m), FEATHER_SIGMA_PX))
     own = float(np.sqrt(max(frame_sigma**2 - render.edge_var_px2, 0.0)))
-    return max(own, defocus_sigma_px(render))
+    return max(own, defocus_sigma_px(render, aperture_m))
 
 
 def _sampled_gaussian(s: float, k: int) -> F64:
@@ -249,6 +252,7 @@ def composite(
     *,
     speed_mps: float = 0.0,
     exposure_s: float = 0.005,
+    aperture_m: float = APERTURE_M,
     lab_match: bool = True,
     blur: bool = True,
     shadow_strength: float = 0.6,
@@ -288,7 +292,7 @@ def composite(
         vec = np.asarray(render.motion_uv_per_m, np.float64) * speed_mps * exposure_s
         motion = (float(vec[0]), float(vec[1])) if np.all(np.isfinite(vec)) else (0.0, 0.0)
         measured = frame_blur(frame, render, motion) if match_sharpness else None
-        sigma = gaussian_sigma_px(render, measured)
+        sigma = gaussian_sigma_px(render, measured, aperture_m)
         if motion != (0.0, 0.0):
             layer = _motion(layer, motion)
     layer = gaussian_blur(layer, sigma)

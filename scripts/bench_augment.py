@@ -165,6 +165,19 @@ def look_check(seq: Sequence, out: Path, cams: list[str], n_frames: int) -> dict
     return res
 
 
+def camera_optics(seq_folder: Path) -> dict[str, float]:
+    """RenderSpec's ``exposure_ms`` and ``aperture_mm`` of a synthetic sequence's cameras
+    (``ground_truth/meta.json``'s ``camera_optics``); {} when it has none."""
+    meta = seq_folder / "ground_truth" / "meta.json"
+    optics = json.loads(meta.read_text()).get("camera_optics") if meta.is_file() else None
+    if not optics:
+        return {}
+    return {
+        "exposure_ms": 1000.0 * float(optics["exposure_s"]),
+        "aperture_mm": 1000.0 * float(optics["aperture_m"]),
+    }
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sequence", type=Path)
@@ -179,15 +192,21 @@ def main() -> int:
     ap.add_argument("--origins", type=Path, default=None, help="per-sensor lidar_origins.json")
     ap.add_argument("--json", type=Path, default=None, help="write the results here")
     ap.add_argument("--look-frames", type=int, default=6, help="frames for the look check (0: off)")
+    ap.add_argument(
+        "--optics", choices=("sequence", "default"), default="sequence",
+        help="the cameras' exposure and aperture: the sequence's own (a synthetic one's "
+        "ground_truth/meta.json: pinholes at the frame's instant) or RenderSpec's defaults",
+    )  # fmt: skip
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
     seq = Sequence.open(args.sequence)
+    optics = camera_optics(args.sequence) if args.optics == "sequence" else {}
     spec = AugmentSpec(
         object=ObjectSource.from_cli(args.object),
         placement=PlacementModel.parse(args.place),
         strategy=args.strategy,
-        render=RenderSpec(png_compression=args.png_compression),
+        render=RenderSpec(png_compression=args.png_compression, **optics),
     )
     tic = time.perf_counter()
     prepared = prepare(
@@ -199,7 +218,8 @@ def main() -> int:
     frames = seq.frame_indices
     print(
         f"{seq.name}: {len(frames)} frames, streams {', '.join(streams)}, "
-        f"{args.workers} worker(s), PNG level {args.png_compression}; preparation "
+        f"{args.workers} worker(s), PNG level {args.png_compression}, exposure "
+        f"{spec.render.exposure_ms:g} ms, aperture {spec.render.aperture_mm:g} mm; preparation "
         f"{t_prep:.1f} s ({'reused' if prepared.summary.get('reused') else 'computed'})"
     )
     floors, jobs, frame_walls, ratios, stage_runs = [], [], [], [], []

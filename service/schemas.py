@@ -280,6 +280,12 @@ class RenderOptions(_In):
     png_compression: int = Field(3, ge=0, le=9)
     blur: bool = True
     shadow: bool = True
+    exposure_ms: float = Field(
+        5.0, ge=0.0, le=100.0, description="front cameras' exposure (motion blur); 0: none"
+    )
+    aperture_mm: float = Field(
+        4.0, ge=0.0, le=100.0, description="effective aperture diameter (defocus); 0: pinhole"
+    )
 
 
 Clicks = dict[CameraName, dict[str, tuple[float, float]]]

@@ -439,9 +439,10 @@ def test_from_job_spec() -> None:
             "object": {"builtin": "cow", "scale": 1.2},
             "placement": {"mode": "lidar_frame", "xyz": [20.0, 1.0, 0.0], "frame_idx": 3},
             "frame_range": [2, 5],
-            "render": {"png_compression": 4, "shadow": False},
+            "render": {"png_compression": 4, "shadow": False, "exposure_ms": 0.0},
         }
     )
+    assert spec.render.exposure_ms == 0.0 and spec.render.aperture_mm == 4.0
     assert spec.object.builtin == "cow" and spec.object.scale == 1.2
     assert spec.placement.mode == "lidar" and spec.placement.frame_idx == 3
     assert spec.frame_range == (2, 5) and not spec.lidar and spec.cameras == ("rgb_center",)

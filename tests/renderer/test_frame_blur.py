@@ -193,3 +193,28 @@ def test_object_edges_match_the_frames_blur(sigma: float) -> None:
     m_obj, m_real = sharpness_inside_outside(model, r.roi, r.alpha)
     if sigma == 2.0:
         assert m_obj / m_real < 0.8, (m_obj, m_real, sigma)
+
+
+def test_a_pinhole_camera_gets_no_defocus_floor() -> None:
+    """A near object (5 m, focal 8000 px: a 4 mm aperture's defocus is 1.6 px) on a sharp
+    frame (0.3 px): with the default aperture the defocus floor makes the object much
+    softer than the frame, as a lens focused at infinity would; with ``aperture_m=0`` (a
+    pinhole, the synthetic generator's cameras) it gets the frame's own blur."""
+    import dataclasses
+
+    from renderer.composite import defocus_sigma_px
+
+    img = camera(boxes(31), 0.3, 2.0, 2)
+    base = square(0.5)
+    r = dataclasses.replace(
+        base, focal_px=8000.0, distance_m=5.0, depth=np.where(base.alpha > 0, 5.0, np.nan)
+    )
+    assert r.roi is not None
+    assert defocus_sigma_px(r) == pytest.approx(1.6, rel=0.01)
+    assert defocus_sigma_px(r, aperture_m=0.0) == 0.0
+    lens = composite(img, r, lab_match=False)
+    s_obj, s_real = sharpness_inside_outside(lens, r.roi, r.alpha, real_rgb=img)
+    assert s_obj / s_real > 2.0, (s_obj, s_real)
+    pinhole = composite(img, r, lab_match=False, aperture_m=0.0)
+    s_obj, s_real = sharpness_inside_outside(pinhole, r.roi, r.alpha, real_rgb=img)
+    assert 0.8 <= s_obj / s_real <= 1.25, (s_obj, s_real)

@@ -263,6 +263,7 @@ BAD_BODIES = [
     ({"cameras": ["rgb_center", "rgb_center"]}, ["body", "cameras"]),
     ({"cameras": ["../etc"]}, ["body", "cameras", 0]),
     ({"render": {"png_compression": 12}}, ["body", "render", "png_compression"]),
+    ({"render": {"exposure_ms": -1}}, ["body", "render", "exposure_ms"]),
     ({"clicks": {"rgb_center": {"one": [1, 2]}}}, ["body", "clicks"]),
     ({"colour": "red"}, ["body", "colour"]),
     ({"sequence_id": 5}, ["body", "sequence_id"]),

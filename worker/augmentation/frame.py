@@ -74,8 +74,7 @@ _RENDERERS: dict[tuple, Any] = {}
 # sphere grown by this (m): the rest are never handed to the ray caster.
 
 
-# Exposure of the front cameras (s, composite's default) and the motion blur cap (px).
-EXPOSURE_S = 0.005
+# The motion blur cap (px).
 
 
 MAX_MOTION_BLUR_PX = 32.0
@@ -289,12 +288,12 @@ def occluders(proxies: ProxyMesh, others: list[tuple[ObjectMesh, F64]]) -> Proxy
     return ProxyMesh.concatenate(parts)
 
 
-def _bounded_motion(render: Any, speed_mps: float) -> Any:
+def _bounded_motion(render: Any, speed_mps: float, exposure_s: float) -> Any:
     """The render with its image motion per metre limited so that the motion blur stays
     under ``MAX_MOTION_BLUR_PX``: the renderer's finite difference is a linearisation that
     explodes for an anchor at or behind the camera plane (an object passing the camera)."""
     m = np.asarray(render.motion_uv_per_m, dtype=np.float64)
-    blur = float(np.linalg.norm(m)) * abs(speed_mps) * EXPOSURE_S
+    blur = float(np.linalg.norm(m)) * abs(speed_mps) * exposure_s
     if np.all(np.isfinite(m)) and blur <= MAX_MOTION_BLUR_PX:
         return render
     if not np.all(np.isfinite(m)) or blur == 0.0:
@@ -326,7 +325,8 @@ def _camera_frame(
     offset = plan.pixel_offsets.get(name, (0.0, 0.0))
     options = {
         "speed_mps": speed,
-        "exposure_s": EXPOSURE_S,
+        "exposure_s": r.exposure_ms / 1000.0,
+        "aperture_m": r.aperture_mm / 1000.0,
         "lab_match": r.lab_match,
         "blur": r.blur,
         "shadow_strength": r.shadow_strength,
@@ -340,7 +340,7 @@ def _camera_frame(
         return [_camera_record(rd) for rd in renders], [None] * len(renders), False
     shown.sort(key=lambda i: -renders[i].distance_m)  # far objects first
     for i in shown:
-        renders[i] = _bounded_motion(renders[i], speed)
+        renders[i] = _bounded_motion(renders[i], speed, r.exposure_ms / 1000.0)
     changed = composite_file(
         src, dest, [(renders[i], options) for i in shown], r.png_compression, t
     )

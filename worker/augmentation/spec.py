@@ -203,6 +203,12 @@ class RenderSpec(_Section):
         ``default`` (renderer.lighting's DEFAULT_SUN_DIR_WORLD, the synthetic scenes' sun).
     scale : the job's fraction of the real resolution; the augmentation always works at
         the input images' resolution (kept for the service's spec; see from_job_spec).
+    exposure_ms, aperture_mm : the front cameras' exposure (the object's motion blur: its
+        image motion over the exposure) and effective aperture diameter (its defocus at
+        its distance, a lens focused at infinity; the frame's measured blur is never
+        undercut by it). OSDaR23 publishes neither: the defaults are assumptions; 0 turns
+        either off (the synthetic generator's cameras: pinholes at the frame's instant,
+        ``meta.json``'s ``camera_optics``).
     lidar_noise : the object's lidar points get their sensor's range noise and dropout,
         measured per frame on the real points around the object
         (:func:`renderer.lidar_noise.measure_lidar_noise`); False: exactly on the
@@ -220,6 +226,8 @@ class RenderSpec(_Section):
     antialias: str = "auto"
     sun: Literal["ephemeris", "default"] = "ephemeris"
     scale: float = Field(1.0, gt=0.0, le=1.0)
+    exposure_ms: float = Field(5.0, ge=0.0, le=100.0)
+    aperture_mm: float = Field(4.0, ge=0.0, le=100.0)
     lidar_noise: bool = True
 
 
@@ -344,6 +352,8 @@ class AugmentSpec(_Section):
             blur=bool(render.get("blur", True)),
             shadow_strength=0.6 if shadow else 0.0,
             scale=float(render.get("scale", 1.0)),
+            exposure_ms=float(render.get("exposure_ms", 5.0)),
+            aperture_mm=float(render.get("aperture_mm", 4.0)),
         )
         clicks = d.get("clicks")
         fr = d.get("frame_range")

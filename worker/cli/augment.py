@@ -57,6 +57,8 @@ def _augment_spec(args: argparse.Namespace) -> AugmentSpec:
                 lab_match=not args.no_lab_match,
                 shadow_strength=args.shadow,
                 pixel_offset=args.pixel_offset,
+                exposure_ms=args.exposure_ms,
+                aperture_mm=args.aperture_mm,
             ),
         )
     except ValidationError as exc:

@@ -652,6 +652,9 @@ def _write_ground_truth(
             "frames": len(schedule),
             "scale": cfg.scale,
             "cameras_full_resolution": {n: c.to_json() for n, c in cams_full.items()},
+            # the cameras are pinholes rendered at the frame's instant: no defocus, no
+            # motion blur (the augmentation's RenderSpec exposure_ms / aperture_mm)
+            "camera_optics": {"exposure_s": 0.0, "aperture_m": 0.0},
             "stationary": cfg.stationary,
             "far_origin": cfg.far_origin,
             "dropped_frames": list(cfg.dropped_frames),
