@@ -70,13 +70,7 @@ F64 = NDArray[np.float64]
 _RENDERERS: dict[tuple, Any] = {}
 
 
-# A frame's lidar cast only sees points whose ray passes within the object's bounding
-# sphere grown by this (m): the rest are never handed to the ray caster.
-
-
 # The motion blur cap (px).
-
-
 MAX_MOTION_BLUR_PX = 32.0
 
 
