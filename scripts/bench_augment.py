@@ -192,6 +192,7 @@ def main() -> int:
     ap.add_argument("--origins", type=Path, default=None, help="per-sensor lidar_origins.json")
     ap.add_argument("--json", type=Path, default=None, help="write the results here")
     ap.add_argument("--look-frames", type=int, default=6, help="frames for the look check (0: off)")
+    ap.add_argument("--antialias", default="auto", help="the renderer's auto, none or ssaa<s>")
     ap.add_argument(
         "--optics", choices=("sequence", "default"), default="sequence",
         help="the cameras' exposure and aperture: the sequence's own (a synthetic one's "
@@ -206,7 +207,7 @@ def main() -> int:
         object=ObjectSource.from_cli(args.object),
         placement=PlacementModel.parse(args.place),
         strategy=args.strategy,
-        render=RenderSpec(png_compression=args.png_compression, **optics),
+        render=RenderSpec(png_compression=args.png_compression, antialias=args.antialias, **optics),
     )
     tic = time.perf_counter()
     prepared = prepare(
@@ -218,7 +219,8 @@ def main() -> int:
     frames = seq.frame_indices
     print(
         f"{seq.name}: {len(frames)} frames, streams {', '.join(streams)}, "
-        f"{args.workers} worker(s), PNG level {args.png_compression}, exposure "
+        f"{args.workers} worker(s), PNG level {args.png_compression}, antialias "
+        f"{args.antialias}, exposure "
         f"{spec.render.exposure_ms:g} ms, aperture {spec.render.aperture_mm:g} mm; preparation "
         f"{t_prep:.1f} s ({'reused' if prepared.summary.get('reused') else 'computed'})"
     )
