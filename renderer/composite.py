@@ -56,6 +56,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from renderer.camera_optics import APERTURE_M, EXPOSURE_S
 from renderer.frame_blur import estimate_blur_sigma
 from renderer.lighting import SRGB8_TO_LINEAR, linear_to_srgb, srgb_to_linear
 from renderer.object_render import ObjectRender
@@ -69,7 +70,6 @@ F64 = NDArray[np.float64]
 LAB_MEAN_BLEND = 0.6
 LAB_STD_BLEND = 0.5
 OPTICS_SIGMA_PX = 0.6  # at the sensor's full resolution
-APERTURE_M = 0.004  # effective aperture diameter of the front cameras (assumed)
 FEATHER_SIGMA_PX = 0.5
 NOISE_WINDOW_PX = 48
 _CHANGE_EPS = 1.0 / 4096.0
@@ -251,7 +251,7 @@ def composite(
     render: ObjectRender,
     *,
     speed_mps: float = 0.0,
-    exposure_s: float = 0.005,
+    exposure_s: float = EXPOSURE_S,
     aperture_m: float = APERTURE_M,
     lab_match: bool = True,
     blur: bool = True,

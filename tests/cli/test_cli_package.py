@@ -42,3 +42,19 @@ def test_every_sub_command_has_a_command_module() -> None:
     assert set(groups) >= {"synth", "info", "demo", "serve", "worker", "migrate", "keys"}
     for name, group in groups.items():
         assert group is not None and (CLI / f"{group}.py").is_file(), name
+
+
+def test_augment_optics_flags_reach_the_spec() -> None:
+    """``--exposure-ms`` / ``--aperture-mm`` set RenderSpec's optics; left out, the spec's
+    assumed defaults (renderer/camera_optics.py) stay."""
+    from renderer.camera_optics import APERTURE_M, EXPOSURE_S
+    from worker.cli.augment import _augment_spec
+
+    base = ["augment", "SEQ", "--object", "rock", "--place", "s=30", "--out", "OUT"]
+    spec = _augment_spec(
+        build_parser().parse_args([*base, "--exposure-ms", "0", "--aperture-mm", "6"])
+    )
+    assert spec.render.exposure_ms == 0.0 and spec.render.aperture_mm == 6.0
+    spec = _augment_spec(build_parser().parse_args(base))
+    assert spec.render.exposure_ms == 1000.0 * EXPOSURE_S
+    assert spec.render.aperture_mm == 1000.0 * APERTURE_M

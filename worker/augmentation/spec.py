@@ -49,6 +49,7 @@ from pydantic import (
     model_validator,
 )
 
+from renderer.camera_optics import APERTURE_M, EXPOSURE_S
 from service.schemas import MotionModel
 from worker.augmentation.gauge import GaugeOutline
 from worker.augmentation.placement import PlacementError, PlacementSpec, parse_place
@@ -226,8 +227,8 @@ class RenderSpec(_Section):
     antialias: str = "auto"
     sun: Literal["ephemeris", "default"] = "ephemeris"
     scale: float = Field(1.0, gt=0.0, le=1.0)
-    exposure_ms: float = Field(5.0, ge=0.0, le=100.0)
-    aperture_mm: float = Field(4.0, ge=0.0, le=100.0)
+    exposure_ms: float = Field(1000.0 * EXPOSURE_S, ge=0.0, le=100.0)
+    aperture_mm: float = Field(1000.0 * APERTURE_M, ge=0.0, le=100.0)
     lidar_noise: bool = True
 
 
@@ -352,8 +353,7 @@ class AugmentSpec(_Section):
             blur=bool(render.get("blur", True)),
             shadow_strength=0.6 if shadow else 0.0,
             scale=float(render.get("scale", 1.0)),
-            exposure_ms=float(render.get("exposure_ms", 5.0)),
-            aperture_mm=float(render.get("aperture_mm", 4.0)),
+            **{k: float(render[k]) for k in ("exposure_ms", "aperture_mm") if k in render},
         )
         clicks = d.get("clicks")
         fr = d.get("frame_range")

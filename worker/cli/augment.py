@@ -57,8 +57,11 @@ def _augment_spec(args: argparse.Namespace) -> AugmentSpec:
                 lab_match=not args.no_lab_match,
                 shadow_strength=args.shadow,
                 pixel_offset=args.pixel_offset,
-                exposure_ms=args.exposure_ms,
-                aperture_mm=args.aperture_mm,
+                **{
+                    k: getattr(args, k)
+                    for k in ("exposure_ms", "aperture_mm")
+                    if getattr(args, k) is not None
+                },
             ),
         )
     except ValidationError as exc:

@@ -49,12 +49,14 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--no-lab-match", action="store_true")
     p.add_argument("--shadow", type=float, default=0.6, help="shadow strength 0-1")
     p.add_argument(
-        "--exposure-ms", type=float, default=5.0,
-        help="the cameras' exposure, for the object's motion blur (0: none; default 5)",
+        "--exposure-ms", type=float, default=None,
+        help="the cameras' exposure, for the object's motion blur (0: none; default: the "
+        "assumption of renderer/camera_optics.py)",
     )  # fmt: skip
     p.add_argument(
-        "--aperture-mm", type=float, default=4.0,
-        help="effective aperture diameter, for the object's defocus (0: pinhole; default 4)",
+        "--aperture-mm", type=float, default=None,
+        help="effective aperture diameter, for the object's defocus (0: a pinhole; default: "
+        "the assumption of renderer/camera_optics.py)",
     )  # fmt: skip
     p.add_argument(
         "--pixel-offset", action="store_true", help="compensate the calibration point's offset"
