@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from geometry.transforms import make_T
@@ -119,3 +120,32 @@ def test_too_few_points_is_no_registration() -> None:
     few = np.random.default_rng(3).uniform(-1, 1, (50, 3)) + np.array([10.0, 0.0, 2.0])
     many = _scans(np.eye(4), seed=3)[0]
     assert register_scans(scan_cloud(few, s), scan_cloud(many, s), np.eye(4), s) is None
+
+
+def test_pairs_registered_in_threads_keep_their_own_results(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """register_pairs runs the registrations in a thread pool: each pair must come back
+    with its own relative pose (four pairs, four different motions), not a neighbour's."""
+    from types import SimpleNamespace
+
+    import worker.preparation.localization.scan_pairs as sp
+
+    monkeypatch.setattr(sp, "_icp_threads", lambda: 2)
+    truths = [_T((4.0 + 2.0 * i, 0.02 * i, 0.0), (0.0, 0.0, 0.03 * i)) for i in range(1, 5)]
+    inp = SimpleNamespace(options={})
+    clouds = sp.ScanClouds(inp, DENSE)  # type: ignore[arg-type]
+    for i, T_true in enumerate(truths, start=1):
+        p_k, p_j = _scans(T_true, seed=i)
+        clouds._cache[0] = clouds._cache.get(0) or scan_cloud(p_k, DENSE)
+        # frame i's scan seen from frame 0's scan of this pair's own world sampling
+        clouds._cache[i] = scan_cloud(p_j, DENSE)
+    inp.options["_scan_clouds"] = clouds
+    k = np.zeros(4, dtype=np.int64)
+    j = np.arange(1, 5, dtype=np.int64)
+    init = np.stack([T @ _T((0.03, -0.02, 0.0), (0.0, 0.0, 0.05)) for T in truths])
+    got = sp.register_pairs(inp, k, j, init)  # type: ignore[arg-type]
+    assert got.ok.all()
+    for T, T_true in zip(got.T_k_j, truths, strict=True):
+        e_t, e_r = _errors(T, T_true)
+        assert np.all(np.abs(e_t[:2]) < 0.003) and abs(np.degrees(e_r[2])) < 0.005, (e_t, e_r)
