@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from worker.preparation.localization.hat import hat_variances
+from worker.preparation.localization.hat import hat_parts
 
 F64 = NDArray[np.float64]
 
@@ -103,29 +103,31 @@ def heading_errors(
         "odometry": np.swapaxes(R_odo[k], 1, 2) @ R_odo[j],
         "course": Rotation.from_rotvec(about_z).as_matrix(),
     }
-    v = hat_variances(rel, axes=slice(2, 3))
-    if v is None:
+    parts = hat_parts(rel, axes=slice(2, 3))
+    if parts is None:
         return None
-    ins, odo, cog = (float(v[name][0]) for name in ("ins", "odometry", "course"))
+    v, scatter = parts
+    s_ins, s_odo, s_cog = (float(scatter[name][0]) for name in ("ins", "odometry", "course"))
     return HeadingErrors(
-        ins=ins, odometry=odo, course=cog, lag=lag, pairs=len(k),
-        ins_se=ins_sampling_error(ins, odo, cog, len(k), lag),
+        ins=float(v["ins"][0]), odometry=float(v["odometry"][0]),
+        course=float(v["course"][0]), lag=lag, pairs=len(k),
+        ins_se=ins_sampling_error(s_ins, s_odo, s_cog, len(k), lag),
     )  # fmt: skip
 
 
 def ins_sampling_error(ins: float, odometry: float, course: float, pairs: int, lag: int) -> float:
     """The standard error (rad^2) of the hat's INS variance from its sampling alone.
 
-    The hat's INS variance is half the sum of the INS-odometry and INS-course differences'
-    variances less the odometry-course one; each is estimated from ``pairs`` pairs ``lag``
-    frames apart, which overlap: about ``1 + pairs / lag`` of them are independent, and a
-    variance from nu samples is off by sqrt(2 / nu) of itself. Where the course over
+    ins, odometry, course : each source's error scatter over the pairs (rad^2,
+    :func:`.hat.hat_parts`: a steady drift, the same in every pair, adds no sampling
+    noise). Per pair the hat's INS share is ``a^2 - ab - ac + bc`` for independent errors
+    a, b, c, of variance ``2 A^2 + A B + A C + B C``; the pairs ``lag`` frames apart
+    overlap, about ``1 + pairs / lag`` of them are independent. Where the course over
     ground is much noisier than the INS (velocity noise at a few m/s: 50-90 mdeg over 30
-    frames against the INS's 20) the INS's share is a small difference of large numbers
-    and this error exceeds it (hard synthetic INS, 60 frames: read 0-15 mdeg where the
-    INS's heading erred by 21 over the lag).
+    frames against the INS's 20) the ``B C`` term makes this error larger than the INS's
+    share (hard synthetic INS, 60 frames: read 0-15 mdeg where the INS's heading erred by
+    21 over the lag).
     """
     nu = 1.0 + pairs / max(lag, 1)
-    rel = np.sqrt(2.0 / nu)
-    diffs = np.array([ins + odometry, ins + course, odometry + course])
-    return float(0.5 * rel * np.sqrt(np.sum(diffs**2)))
+    a, b, c = ins, odometry, course
+    return float(np.sqrt((2.0 * a * a + a * b + a * c + b * c) / nu))
