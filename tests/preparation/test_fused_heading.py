@@ -51,35 +51,16 @@ def _input(folder: Path, **options: object):
     return make_input(Sequence.open(folder), ego=ego, options=opts)
 
 
-@pytest.fixture(scope="module")
-def no_gyro_errors(slow_curve: Path) -> dict[str, float]:
-    """Heading error over 10 frames (deg) of ins, odometry and fused with the gyros off."""
-    return {s: _heading_error_deg(run_strategy(s, _input(slow_curve, fused_gyro=False)).track,
-                                  slow_curve, 10)
-            for s in ("ins", "odometry", "fused")}  # fmt: skip
-
-
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="measured miss since 5fdc0f1: fused 0.059 deg against the INS's 0.0084 (bound "
-    "1.5x). With the gyros off nothing here shows the INS's heading to be good: the hat, "
-    "its odometry 0.78 deg off, reads the INS at 0.063 deg with a sampling error as large, "
-    "and the wander's VCE (redundancy 1.2) no longer lowers it beyond its sampling error",
-    strict=False,
-)
 def test_fused_keeps_the_good_ins_heading_when_the_odometry_misses_the_curve(
-    no_gyro_errors: dict[str, float],
+    slow_curve: Path,
 ) -> None:
     # the gyros off: the hat and the rail motion tell the odometry's heading from the INS's
-    err = no_gyro_errors
+    err = {s: _heading_error_deg(run_strategy(s, _input(slow_curve, fused_gyro=False)).track,
+                                 slow_curve, 10)
+           for s in ("ins", "odometry", "fused")}  # fmt: skip
+    with_gyro = _heading_error_deg(run_strategy("fused", _input(slow_curve)).track, slow_curve, 10)
     assert err["odometry"] > 10 * err["ins"], err  # the case: the odometry misses the turn
     assert err["fused"] < 1.5 * err["ins"], err
-
-
-@pytest.mark.slow
-def test_with_the_gyros_the_turn_is_theirs(
-    slow_curve: Path, no_gyro_errors: dict[str, float]
-) -> None:
-    with_gyro = _heading_error_deg(run_strategy("fused", _input(slow_curve)).track, slow_curve, 10)
-    assert no_gyro_errors["odometry"] > 10 * no_gyro_errors["ins"], no_gyro_errors
-    assert with_gyro < 1.5 * no_gyro_errors["ins"], (with_gyro, no_gyro_errors)
+    # with the gyros the turn is theirs
+    assert with_gyro < 1.5 * err["ins"], (with_gyro, err)

@@ -24,7 +24,6 @@ from worker.preparation.localization.gyro import (
     rotations_at,
     steps_at,
     time_offset,
-    walk_rate,
 )
 
 MDEG = np.pi / 180.0 / 1000.0
@@ -167,30 +166,6 @@ def test_a_tilted_ins_is_found_in_a_curve_and_not_on_the_straight() -> None:
         assert significant == found, (yaw_rate, a, se)
         if found:
             assert np.all(np.abs(a[:2] - tilt[:2]) < np.radians(0.03)), np.degrees(a)
-
-
-def test_the_gyros_walk_is_read_from_the_records() -> None:
-    """White angle noise of 1.58 mdeg a 0.1 s record (0.3 deg/sqrt(h)) on records of a
-    turn with tens of mdeg of sway: the heading's walk reads within 15 % of it, and with
-    no noise under a tenth of it (the turn's own share); a constant bias adds nothing."""
-    t_rec = 100.0 + WINDOW * np.arange(300)
-    clean = _records(t_rec)
-    walk = walk_rate(gyro_chain(t_rec, clean))
-    assert walk is not None
-    per_window = np.degrees(walk * np.sqrt(WINDOW)) * 1e3  # mdeg a window
-    assert per_window[2] < 0.16, per_window
-    rng = np.random.default_rng(3)
-    sd = 1.58 * MDEG
-    noisy = clean + sd * rng.standard_normal(clean.shape) / WINDOW + np.radians(5.0 / 3600)
-    walk = walk_rate(gyro_chain(t_rec, noisy))
-    assert walk is not None
-    per_window = np.degrees(walk * np.sqrt(WINDOW)) * 1e3
-    assert abs(per_window[2] / 1.58 - 1.0) < 0.15, per_window
-
-
-def test_too_few_records_give_no_walk() -> None:
-    t_rec = 100.0 + WINDOW * np.arange(8)
-    assert walk_rate(gyro_chain(t_rec, _records(t_rec))) is None
 
 
 @pytest.fixture(scope="module")
@@ -344,11 +319,3 @@ def test_a_gyro_bias_is_estimated_and_kept_out_of_the_poses(
     assert -28.0 < seen < -8.0, got
     # and the poses keep at most a quarter of its drift (33 mdeg over the sequence)
     assert abs(got["biased"][1] - got["clean"][1]) < 8.0, got
-
-
-def test_fused_takes_the_heading_walk_of_a_noisy_gyro(sequence: Path) -> None:
-    """The hard profile's gyros (0.3 deg/sqrt(h) = 5 mdeg/sqrt(s)) read as such in the
-    smoothing's health (the heading steps' sigma above the 1 mdeg floor follows it)."""
-    res = FusedStrategy().run(true_ego_input(sequence))
-    walk = res.health.metrics["fused_gyro_heading_walk_mdeg_rt_s"]
-    assert abs(walk / 5.0 - 1.0) < 0.25, walk

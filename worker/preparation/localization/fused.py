@@ -76,7 +76,7 @@ from worker.preparation.localization.common import (
 )
 from worker.preparation.localization.ground_pairs import LAGS as GROUND_LAGS
 from worker.preparation.localization.ground_pairs import ground_pairs
-from worker.preparation.localization.gyro import GAP_SIGMA_FACTOR, gyro_steps, walk_rate
+from worker.preparation.localization.gyro import GAP_SIGMA_FACTOR, gyro_steps
 from worker.preparation.localization.hat import hat_variances, relative_difference
 from worker.preparation.localization.heading_hat import MIN_PAIRS as HEADING_MIN_PAIRS
 from worker.preparation.localization.heading_hat import HeadingErrors, heading_errors
@@ -268,12 +268,8 @@ class Sigmas:
     #: False keeps the floor.
     ins_p_wander_from_velocity: bool = True
     #: The gyros' frame-to-frame rotation (:mod:`.gyro`, ``novatel_oem7_corrimu``), sigma
-    #: per axis (rad): a tactical-grade IMU's angle noise over 0.1 s is under 1 mdeg. About
-    #: the heading a noisier IMU's own walk, measured from its records
-    #: (:func:`.gyro.walk_rate`), replaces it where larger: the block's variance factor,
-    #: read from single steps, saw 0.7 of a noisy gyro's walk (hard synthetic INS: factor
-    #: 1.33 for a 1.58 mdeg walk) and the heading's covariance was 2-2.7x too tight over
-    #: 10-30 frames. The block's variance factor takes what the interpolation to the lidar
+    #: per axis (rad): a tactical-grade IMU's angle noise over 0.1 s is under 1 mdeg; the
+    #: block's variance factor takes what a worse IMU or the interpolation to the lidar
     #: times adds. The option ``fused_gyro: false`` turns it off.
     gyro: bool = True
     gyro_r: float = 0.001 * DEG
@@ -1353,17 +1349,11 @@ def _gyro_steps(
         return None
     if steps is None or not np.any(steps.ok):
         return None
-    dt = np.diff(np.asarray(inp.times, dtype=np.float64))
-    r = np.full((len(dt), 3), sig.gyro_r)
-    walk = walk_rate(steps.chain) if steps.chain is not None else None
-    if walk is not None:  # the heading only (:func:`.gyro.walk_rate`: roll, pitch sway)
-        r[:, 2] = np.maximum(sig.gyro_r, walk[2] * np.sqrt(np.maximum(dt, 0.0)))
-        health.metrics["fused_gyro_heading_walk_mdeg_rt_s"] = float(np.degrees(walk[2]) * 1e3)
-    sigma = np.hypot(r * (1.0 + GAP_SIGMA_FACTOR * steps.gap)[:, None], steps.sd_interp)
+    sigma = np.hypot((sig.gyro_r * (1.0 + GAP_SIGMA_FACTOR * steps.gap))[:, None], steps.sd_interp)
     return {
         "D": steps.D,
         "w": np.where(steps.ok[:, None], 1.0 / sigma, 0.0),
-        "dt": dt,
+        "dt": np.diff(np.asarray(inp.times, dtype=np.float64)),
         "steps": steps,
     }
 
@@ -1883,14 +1873,8 @@ def _bias_step_sigmas(
     if heading is not None:  # the course over ground is the heading's third source
         white_var = 2.0 * float(own_white[2]) ** 2 if own_white is not None else 0.0
         span = heading.lag * float(np.median(np.diff(times)))
-        # the largest wander the hat cannot rule out (one sampling error above its
-        # estimate: :func:`.heading_hat.ins_sampling_error`), within what the INS differs
-        # from the odometry by (both errors add up there). With the estimate alone the
-        # hat's sampling noise read a hard INS's heading (10 mdeg a second of walk) as not
-        # wandering at all, and its relative heading over 30 frames as good to 6 mdeg
-        # where it erred by 20 (klein_flottbek-f60-d0.3-hard, seeds 0, 1, 10, 11).
-        wander_var = max(heading.ins - white_var, 0.0) + heading.ins_se
-        own_wander = math.sqrt(wander_var * sig.bias_knot_s / span)
+        # within what it differs from the odometry by (both errors add up there)
+        own_wander = math.sqrt(max(heading.ins - white_var, 0.0) * sig.bias_knot_s / span)
         rot[2] = min(rot[2], own_wander)
         floor[2] = INS_WHITE_FLOOR
         health.metrics["fused_ins_wander_source_heading"] = 1.0
@@ -2487,15 +2471,8 @@ def wander_factors(pb: Problem, x: F64, red: tuple[F64, F64, F64] | None = None)
     rb = (w[rows] * r[rows] ** 2).reshape(-1, 6)
     num, den = rb.sum(axis=0), one_minus_h[rows].reshape(-1, 6).sum(axis=0)
     log.debug("wander VCE: sum w r^2 %s, redundancy %s", num, den)
-    # a component whose prior has (almost) no redundancy is left as it is; one whose
-    # residuals say it wanders less is lowered only by what they show beyond their own
-    # sampling error (a factor's square from redundancy r is off by sqrt(2 / r)): a
-    # 60-frame run has 5 knot steps, and their scatter read a hard INS's heading walk of
-    # 10 mdeg a second as 3 mdeg (klein_flottbek-f60-d0.3-hard-s11)
-    f2 = num / np.maximum(den, 1e-12)
-    lower = f2 < 1.0
-    f2 = np.where(lower, np.minimum(1.0, f2 + np.sqrt(2.0 / np.maximum(den, 1e-12))), f2)
-    f = np.where(den > WANDER_MIN_REDUNDANCY, np.sqrt(f2), 1.0)
+    # a component whose prior has (almost) no redundancy is left as it is
+    f = np.where(den > WANDER_MIN_REDUNDANCY, np.sqrt(num / np.maximum(den, 1e-12)), 1.0)
     f[~np.asarray(WANDER_ESTIMATED)] = 1.0
     return np.clip(f, *WANDER_FACTOR_BOUNDS)
 

@@ -43,7 +43,6 @@ from scipy.spatial.transform import Rotation
 from geometry.poses import R_INS_BASE_NOMINAL
 from worker.osdar.sequence import CORRIMU_DIR
 from worker.preparation.localization.base import Health, LocalizationInput
-from worker.preparation.localization.ins_wander import robust_rms
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -84,9 +83,6 @@ GAIN_BOUNDS = (0.25, 4.0)
 GAIN_TOLERANCE = 0.15
 #: A step across a missing record counts this much less (sigma factor per missing window).
 GAP_SIGMA_FACTOR = 3.0
-#: Fewest third differences of consecutive records' increments to measure the gyros'
-#: angle random walk from (:func:`walk_rate`).
-MIN_WALK_SAMPLES = 8
 
 
 @dataclass(frozen=True)
@@ -248,37 +244,6 @@ def lagrange_at(x: F64, y: F64, at: float) -> F64:
                 basis *= (at - x[b]) / (x[a] - x[b])
         out += basis * y[a]
     return out
-
-
-def walk_rate(chain: GyroChain) -> F64 | None:
-    """(3,) the gyros' angle random walk about the base axes (rad / sqrt(s)), from the
-    records themselves; None with fewer than :data:`MIN_WALK_SAMPLES` usable records.
-
-    Each record's increment (its rate times the window) holds the IMU's white angle noise
-    of that window, independent from record to record, while the body's rotation changes
-    smoothly: the third difference of consecutive increments is mostly the noise (variance
-    20 sigma^2), read as a robust RMS over records whose intervals are one window (gaps
-    left out); a bias cancels. About the heading that holds (a train turns with the
-    track's curvature); about roll and pitch the body's sway on its suspension (tens of
-    mdeg at 1-2 Hz) adds as much as the noise of a tactical-grade gyro (synthetic
-    osdar23 INS, 0.79 mdeg a window: heading 0.84-1.01, roll and pitch 1.0-1.5).
-
-    This is the walk rate of the summed chain, which the frame steps inherit: a frame step
-    between two lidar times takes parts of the records at both of its ends, so consecutive
-    steps share a record's noise and a single step's scatter (the fused block's residuals)
-    reads as little as 0.7 of it (hard synthetic INS, 1.58 mdeg a window: 1.07-1.27 mdeg
-    a step against a walk of 1.4-1.85 mdeg over 5-30 steps; this reads 1.24-1.70).
-    """
-    t = np.asarray(chain.t[1:], dtype=np.float64)
-    inc = np.asarray(chain.rates[1:], dtype=np.float64) * chain.window
-    if len(t) < 4 or not chain.window > 0:
-        return None
-    regular = np.abs(np.diff(t) - chain.window) <= GAP_MIN * chain.window
-    use = regular[2:] & regular[1:-1] & regular[:-2]
-    d3 = (inc[3:] - 3.0 * inc[2:-1] + 3.0 * inc[1:-2] - inc[:-3])[use]
-    if len(d3) < MIN_WALK_SAMPLES:
-        return None
-    return np.asarray(robust_rms(d3) / np.sqrt(20.0) / np.sqrt(chain.window), dtype=np.float64)
 
 
 def steps_at(

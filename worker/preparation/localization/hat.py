@@ -45,16 +45,6 @@ def hat_variances(rel: dict[str, F64], axes: slice = slice(0, 2)) -> dict[str, F
     noise can make the formula negative for a very good source); a source's part shared
     by all pairs is counted as the module docstring says.
     """
-    parts = hat_parts(rel, axes)
-    return None if parts is None else parts[0]
-
-
-def hat_parts(
-    rel: dict[str, F64], axes: slice = slice(0, 2)
-) -> tuple[dict[str, F64], dict[str, F64]] | None:
-    """:func:`hat_variances` and, per source, its error's scatter about its mean over the
-    pairs (rad^2, floored at 0): the part that varies from pair to pair, which is what
-    sampling noise comes from (a steady drift, shared by all pairs, adds none)."""
     names = list(rel)
     if len(names) != 3:
         raise ValueError(f"the three-cornered hat needs 3 sources, got {names}")
@@ -69,13 +59,12 @@ def hat_parts(
             m = np.sum(np.where(keep, d, 0.0), axis=0) / n
             v[a, b] = v[b, a] = np.sum(np.where(keep, d * d, 0.0), axis=0) / n - m * m
             mean[a, b], mean[b, a] = m, -m
-    out, scatter = {}, {}
+    out = {}
     for a in names:
         b, c = (x for x in names if x != a)
-        spread = 0.5 * (v[a, b] + v[a, c] - v[b, c])
+        scatter = 0.5 * (v[a, b] + v[a, c] - v[b, c])
         product = mean[a, b] * mean[a, c]
         smaller = np.minimum(np.abs(mean[a, b]), np.abs(mean[a, c]))
         shared = np.where(product > 0.0, smaller**2, product)
-        out[a] = np.maximum(spread + shared, 0.0)
-        scatter[a] = np.maximum(spread, 0.0)
-    return out, scatter
+        out[a] = np.maximum(scatter + shared, 0.0)
+    return out

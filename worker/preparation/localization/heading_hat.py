@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from worker.preparation.localization.hat import hat_parts
+from worker.preparation.localization.hat import hat_variances
 
 F64 = NDArray[np.float64]
 
@@ -40,15 +40,13 @@ MIN_PAIRS = 20
 
 @dataclass(frozen=True)
 class HeadingErrors:
-    """Heading error variances (rad^2) over ``lag`` frames of each source, and the
-    sampling error of the INS's (:func:`ins_sampling_error`)."""
+    """Heading error variances (rad^2) over ``lag`` frames of each source."""
 
     ins: float
     odometry: float
     course: float
     lag: int
     pairs: int
-    ins_se: float = 0.0
 
 
 def course_over_ground(v_world: F64, times: F64) -> F64:
@@ -103,31 +101,13 @@ def heading_errors(
         "odometry": np.swapaxes(R_odo[k], 1, 2) @ R_odo[j],
         "course": Rotation.from_rotvec(about_z).as_matrix(),
     }
-    parts = hat_parts(rel, axes=slice(2, 3))
-    if parts is None:
+    v = hat_variances(rel, axes=slice(2, 3))
+    if v is None:
         return None
-    v, scatter = parts
-    s_ins, s_odo, s_cog = (float(scatter[name][0]) for name in ("ins", "odometry", "course"))
     return HeadingErrors(
-        ins=float(v["ins"][0]), odometry=float(v["odometry"][0]),
-        course=float(v["course"][0]), lag=lag, pairs=len(k),
-        ins_se=ins_sampling_error(s_ins, s_odo, s_cog, len(k), lag),
-    )  # fmt: skip
-
-
-def ins_sampling_error(ins: float, odometry: float, course: float, pairs: int, lag: int) -> float:
-    """The standard error (rad^2) of the hat's INS variance from its sampling alone.
-
-    ins, odometry, course : each source's error scatter over the pairs (rad^2,
-    :func:`.hat.hat_parts`: a steady drift, the same in every pair, adds no sampling
-    noise). Per pair the hat's INS share is ``a^2 - ab - ac + bc`` for independent errors
-    a, b, c, of variance ``2 A^2 + A B + A C + B C``; the pairs ``lag`` frames apart
-    overlap, about ``1 + pairs / lag`` of them are independent. Where the course over
-    ground is much noisier than the INS (velocity noise at a few m/s: 50-90 mdeg over 30
-    frames against the INS's 20) the ``B C`` term makes this error larger than the INS's
-    share (hard synthetic INS, 60 frames: read 0-15 mdeg where the INS's heading erred by
-    21 over the lag).
-    """
-    nu = 1.0 + pairs / max(lag, 1)
-    a, b, c = ins, odometry, course
-    return float(np.sqrt((2.0 * a * a + a * b + a * c + b * c) / nu))
+        ins=float(v["ins"][0]),
+        odometry=float(v["odometry"][0]),
+        course=float(v["course"][0]),
+        lag=lag,
+        pairs=len(k),
+    )
