@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from worker.gzip_stored import STORED_BLOCK_MAX, GzipStoredWriter
+from worker.gzip_stored import LEVELS, STORED_BLOCK_MAX, GzipStoredWriter
 from worker.osdar.images import write_png
 from worker.packaging import build_archive
 
@@ -27,9 +27,10 @@ def _parts() -> list[tuple[bool, bytes]]:
             (False, text[:999]), (True, noise[:STORED_BLOCK_MAX])]  # fmt: skip
 
 
-def test_stored_and_deflated_parts_decompress_to_what_was_written() -> None:
+@pytest.mark.parametrize("level", LEVELS)
+def test_stored_and_deflated_parts_decompress_to_what_was_written(level: int) -> None:
     buf = io.BytesIO()
-    with GzipStoredWriter(buf, level=1) as gz:
+    with GzipStoredWriter(buf, level=level) as gz:
         for stored, data in _parts():
             gz.stored = stored
             assert gz.write(data) == len(data)
@@ -58,8 +59,9 @@ def test_gzip_tool_accepts_the_stream(tmp_path: Path) -> None:
 
 
 def test_level_out_of_range_is_refused() -> None:
-    with pytest.raises(ValueError, match=r"0\.\.9"):
-        GzipStoredWriter(io.BytesIO(), level=10)
+    for level in (-1, 4, 9):  # ISA-L's levels are 0..3
+        with pytest.raises(ValueError, match=r"0\.\.3"):
+            GzipStoredWriter(io.BytesIO(), level=level)
 
 
 @pytest.fixture

@@ -12,6 +12,11 @@ member, without an error.)
 
 Before the first stored block the deflater is flushed with ``Z_FULL_FLUSH``: its output
 ends on a byte boundary and nothing it writes later refers back to bytes before it.
+
+The deflater and the CRC-32 are ISA-L's (the ``isal`` package), not zlib's: on a lidar
+PCD (float fields, 18.6 MB) ISA-L's level 1 deflates 343 MB/s to 0.574 of the size
+against zlib's level 1 at 53 MB/s to 0.588, and its CRC-32 takes 5 ms per 100 MB against
+40. Packaging deflates every PCD of a variant, gigabytes at full resolution.
 """
 
 from __future__ import annotations
@@ -21,8 +26,12 @@ import zlib
 from types import TracebackType
 from typing import BinaryIO
 
+from isal import isal_zlib
+
 #: The longest stored block (its LEN field has 16 bits).
 STORED_BLOCK_MAX = 0xFFFF
+#: ISA-L's deflate levels (0 fastest, 3 smallest).
+LEVELS = range(0, 4)
 #: gzip header XFL: the deflater's fastest / best level (the rest: 0).
 _XFL_FASTEST, _XFL_BEST = 4, 2
 
@@ -30,21 +39,21 @@ _XFL_FASTEST, _XFL_BEST = 4, 2
 class GzipStoredWriter:
     """Write-only binary file (``write``, ``tell``, ``close``) of gzip to ``out``.
 
-    ``level``: the deflate level of the parts not stored. Set :attr:`stored` before
+    ``level``: ISA-L's deflate level (0-3) of the parts not stored. Set :attr:`stored` before
     writing a part that does not compress. ``tell()`` is the uncompressed offset (what
     ``tarfile`` asks of its file). ``close()`` ends the stream; ``out`` stays open.
     """
 
     def __init__(self, out: BinaryIO, level: int = 1) -> None:
-        if not 0 <= level <= 9:
-            raise ValueError(f"deflate level must be 0..9, got {level}")
+        if level not in LEVELS:
+            raise ValueError(f"deflate level must be 0..3 (ISA-L's), got {level}")
         self._out = out
-        self._deflate = zlib.compressobj(level, zlib.DEFLATED, -zlib.MAX_WBITS)
+        self._deflate = isal_zlib.compressobj(level, isal_zlib.DEFLATED, -zlib.MAX_WBITS)
         self._crc = 0
         self._size = 0
         self._stored = False
         self.closed = False
-        xfl = _XFL_FASTEST if level <= 1 else _XFL_BEST if level == 9 else 0
+        xfl = _XFL_FASTEST if level <= 1 else _XFL_BEST if level == LEVELS[-1] else 0
         # magic, CM=deflate, no flags, MTIME 0 (reproducible bytes), XFL, OS unknown
         out.write(b"\x1f\x8b\x08\x00" + struct.pack("<I", 0) + bytes([xfl, 255]))
 
@@ -56,7 +65,7 @@ class GzipStoredWriter:
     @stored.setter
     def stored(self, value: bool) -> None:
         if value and not self._stored:
-            self._out.write(self._deflate.flush(zlib.Z_FULL_FLUSH))
+            self._out.write(self._deflate.flush(isal_zlib.Z_FULL_FLUSH))
         self._stored = value
 
     def write(self, data: bytes | bytearray | memoryview) -> int:
@@ -64,7 +73,7 @@ class GzipStoredWriter:
             raise ValueError("write to a closed GzipStoredWriter")
         view = memoryview(data).cast("B")
         n = len(view)
-        self._crc = zlib.crc32(view, self._crc)
+        self._crc = isal_zlib.crc32(view, self._crc)
         self._size += n
         if not self._stored:
             self._out.write(self._deflate.compress(view))
@@ -86,7 +95,7 @@ class GzipStoredWriter:
         """The final deflate block and the gzip trailer (CRC-32, size mod 2**32)."""
         if self.closed:
             return
-        self._out.write(self._deflate.flush(zlib.Z_FINISH))
+        self._out.write(self._deflate.flush(isal_zlib.Z_FINISH))
         self._out.write(struct.pack("<II", self._crc, self._size & 0xFFFFFFFF))
         self._out.flush()
         self.closed = True
