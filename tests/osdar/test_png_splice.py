@@ -17,12 +17,14 @@ from PIL import Image
 from worker.osdar.png_splice import (
     ADLER_MOD,
     MAX_DISTANCE,
+    _deflate_isal,
     _empty_fixed_blocks,
     _filter_rows,
     _inflate_prefix,
     _libz,
     adler32_combine,
     adler32_tail,
+    isal_level,
     splice_png,
     splice_png_result,
 )
@@ -148,6 +150,58 @@ def test_adler32_combine_and_tail(len_x: int, len_y: int) -> None:
     assert adler32_combine(ax, ay, len_y) == axy
     assert adler32_tail(axy, ax, len_y) == ay
     assert adler32_tail(axy, ax, len_y + ADLER_MOD) == ay  # lengths count mod 65521
+
+
+def _fixed_literal_blocks(literals: list[bytes]) -> tuple[bytes, int, int]:
+    """Non-final fixed-Huffman blocks, one per item of ``literals``, as (whole bytes,
+    pending bit count, pending bits): literals 0-143 take 8 bits, 144-255 9 (RFC 1951,
+    3.2.6), so the blocks end at any bit of a byte."""
+    acc, n = 0, 0
+
+    def put(value: int, nbits: int) -> None:  # LSB first
+        nonlocal acc, n
+        acc |= value << n
+        n += nbits
+
+    def code(c: int, nbits: int) -> None:  # Huffman codes go MSB first
+        put(int(f"{c:0{nbits}b}"[::-1], 2), nbits)
+
+    for block in literals:
+        put(0, 1)  # BFINAL
+        put(1, 2)  # BTYPE 01
+        for lit in block:
+            code(0x30 + lit, 8) if lit < 144 else code(0x190 + lit - 144, 9)
+        code(0, 7)  # end of block
+    whole = n // 8
+    return acc.to_bytes(whole + 1, "little")[:whole], n % 8, acc >> (8 * whole)
+
+
+@pytest.mark.parametrize("finish", [True, False])
+def test_isal_middle_continues_a_stream_at_every_bit(finish: bool) -> None:
+    """ISA-L's middle after a head that ends at each bit 0-7 of a byte, with the head's
+    bytes as history: the stream inflates to head + middle (the stored-block lead)."""
+    rng = np.random.default_rng(5)
+    seen = set()
+    for k in range(48):
+        head = [bytes(rng.integers(0, 256, 300, dtype=np.uint8))] + [
+            bytes(rng.integers(0, 256, int(rng.integers(1, 6)), dtype=np.uint8))
+            for _ in range(k % 4 + 1)
+        ]
+        whole, nbits, pending = _fixed_literal_blocks(head)
+        seen.add(nbits)
+        history = b"".join(head)
+        data = np.frombuffer(history, np.uint8)  # all of it a match into the history
+        middle = _deflate_isal(data, 1, data, nbits, pending, finish=finish)
+        d = zlib.decompressobj(-15)
+        out = d.decompress(whole + middle + (b"" if finish else b"\x03\x00"))
+        assert out == history + history
+        assert d.eof and d.unused_data == b""
+        assert len(middle) < 40  # 300+ random bytes as a few matches
+    assert seen == set(range(8))
+
+
+def test_isal_levels_from_zlib_levels() -> None:
+    assert [isal_level(lv) for lv in range(1, 10)] == [1, 1, 1, 2, 2, 2, 3, 3, 3]
 
 
 @pytest.mark.parametrize("n", range(5))
