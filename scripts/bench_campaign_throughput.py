@@ -30,10 +30,15 @@ Defaults: 2 synthetic sequences (fire_site, station) of 40 frames at 0.15 of the
 resolution, 4 built-in obstacles, 3 explicit track placements: 24 variants of 2 chunks.
 
     .venv/bin/python scripts/bench_campaign_throughput.py [--frames 40] [--db postgres]
-        [--one-threads 0,1]
+        [--one-threads 0,1] [--pairs N]
 
 ``--one-threads 0,1``: the 1-process campaign once with the workers' own thread caps
 (all cores) and once with 1 thread: whether one process should use the second core.
+
+``--pairs N``: the 1- and the 2-process campaigns N times, in alternating order, and the
+ratio of their median variants/min (the first pair is the one reported in full). The
+machine's speed drifts between campaigns (a variant's CPU seconds 3.7-6.0 on one machine
+in one day): one pair's ratio moved 1.73-2.02 over four runs of the same code.
 
 ``--profile DIR``: py-spy (if installed: it is no dependency of the project; 0.3.14 reads
 this machine's Python 3.11.7, 0.4.3 does not find its version) samples the worker's process
@@ -351,6 +356,12 @@ def main() -> int:
         "(0: the workers' own caps, all cores); the singles run with the first",
     )  # fmt: skip
     ap.add_argument("--profile", type=Path, default=None, help="py-spy output folder")
+    ap.add_argument(
+        "--pairs", type=int, default=1,
+        help="campaigns with 1 and with 2 processes, this many times in alternating order "
+        "(1-2, 2-1, ...): the ratio of their median variants/min, steadier than one pair's "
+        "on a machine whose speed drifts between campaigns",
+    )  # fmt: skip
     args = ap.parse_args()
 
     root = Path(tempfile.mkdtemp(prefix="osdar_campaign_throughput_"))
@@ -361,10 +372,34 @@ def main() -> int:
         ones = [run_campaign(folders, 1, root, args, threads=t, singles=i == 0 and args.singles > 0)
                 for i, t in enumerate(one_threads)]  # fmt: skip
         two = run_campaign(folders, 2, root, args, threads=args.threads)
+        more: list[tuple[Run, Run]] = []
+        for k in range(1, max(1, args.pairs)):
+            runs = {
+                w: run_campaign(
+                    folders, w, root, args, threads=args.threads if w == 2 else one_threads[0]
+                )
+                for w in ((2, 1) if k % 2 else (1, 2))
+            }
+            more.append((runs[1], runs[2]))  # fmt: skip
     finally:
         shutil.rmtree(root, ignore_errors=True)
     report(ones, two)
+    if more:
+        report_pairs([(ones[0], two), *more])
     return 0
+
+
+def report_pairs(pairs: list[tuple[Run, Run]]) -> None:
+    """Each pair's ratio and the ratio of the medians over the pairs (``--pairs``)."""
+    for k, (one, two) in enumerate(pairs, 1):
+        print(f"pair {k} ({'1 then 2' if k % 2 else '2 then 1'}): {one.per_min:.1f} and "
+              f"{two.per_min:.1f} variants/min, ratio {two.per_min / one.per_min:.2f}; CPU s a "
+              f"variant {one.cpu_per_variant_s:.2f} / {two.cpu_per_variant_s:.2f}, cores "
+              f"{one.cores:.2f} / {two.cores:.2f}")  # fmt: skip
+    m1 = statistics.median(one.per_min for one, _ in pairs)
+    m2 = statistics.median(two.per_min for _, two in pairs)
+    print(f"throughput ratio of the medians over {len(pairs)} pairs: {m2:.1f} / {m1:.1f} = "
+          f"{m2 / m1:.2f} (goal >= 1.8: {'met' if m2 / m1 >= 1.8 else 'missed'})")  # fmt: skip
 
 
 if __name__ == "__main__":
