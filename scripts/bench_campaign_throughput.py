@@ -380,7 +380,7 @@ def main() -> int:
                 )
                 for w in ((2, 1) if k % 2 else (1, 2))
             }
-            more.append((runs[1], runs[2]))  # fmt: skip
+            more.append((runs[1], runs[2]))
     finally:
         shutil.rmtree(root, ignore_errors=True)
     report(ones, two)

@@ -21,8 +21,8 @@ How the three parts fit (RFC 1950 zlib, RFC 1951 deflate, PNG filtered scanlines
   filtered anew from the image. ISA-L (the ``isal`` package; 3.5x faster than libz's
   level 1 and smaller, :func:`isal_level`) deflates it as a raw stream with the window
   before out_A as dictionary, so the decoder's history matches, after an empty stored
-  block that takes the head's last partial byte to a byte boundary (at level 0, libz
-  writes it primed with that byte: ``deflatePrime``). It ends with
+  block that takes the head's last partial byte to a byte boundary (level 0: Python's
+  zlib writes stored blocks the same way). It ends with
   ``Z_SYNC_FLUSH`` (byte aligned, not final) when a tail follows, else ``Z_FINISH``.
   It uses deflate's largest window, 32 KiB, and the zlib header says so (CINFO 7, as every
   PNG of more than 16 KiB of data has already; libpng declares smaller windows for smaller
@@ -54,6 +54,7 @@ import struct
 import zlib
 from dataclasses import dataclass
 from functools import cache
+from typing import Any
 
 import cv2
 import numpy as np
@@ -79,12 +80,8 @@ _FILTER_BATCH_BYTES = 1 << 20
 # zlib.h constants
 _Z_OK = 0
 _Z_STREAM_END = 1
-_Z_SYNC_FLUSH = 2
-_Z_FINISH = 4
 _Z_BLOCK = 5
 _Z_DEFLATED = 8
-_Z_DEFAULT_STRATEGY = 0
-_MEM_LEVEL = 8
 #: ``strm->data_type`` after inflate(): the unused-bit count, +64 in the last block,
 #: +128 right after an end-of-block code (the unused bits are then fewer than 8).
 _DT_LAST = 64
@@ -126,37 +123,10 @@ class _Libz:
         self.inflate.argtypes = [p, ctypes.c_int]
         self.inflateEnd = lib.inflateEnd
         self.inflateEnd.argtypes = [p]
-        self.deflateInit2_ = lib.deflateInit2_
-        self.deflateInit2_.argtypes = [
-            p,
-            ctypes.c_int,
-            ctypes.c_int,
-            ctypes.c_int,
-            ctypes.c_int,
-            ctypes.c_int,
-            ctypes.c_char_p,
-            ctypes.c_int,
-        ]
-        self.deflateSetDictionary = lib.deflateSetDictionary
-        self.deflateSetDictionary.argtypes = [p, ctypes.c_void_p, ctypes.c_uint]
-        self.deflatePrime = lib.deflatePrime
-        self.deflatePrime.argtypes = [p, ctypes.c_int, ctypes.c_int]
-        self.deflateBound = lib.deflateBound
-        self.deflateBound.argtypes = [p, ctypes.c_ulong]
-        self.deflateBound.restype = ctypes.c_ulong
-        self.deflate = lib.deflate
-        self.deflate.argtypes = [p, ctypes.c_int]
-        self.deflateEnd = lib.deflateEnd
-        self.deflateEnd.argtypes = [p]
         for f in (
             self.inflateInit2_,
             self.inflate,
             self.inflateEnd,
-            self.deflateInit2_,
-            self.deflateSetDictionary,
-            self.deflatePrime,
-            self.deflate,
-            self.deflateEnd,
         ):
             f.restype = ctypes.c_int
 
@@ -293,15 +263,14 @@ def _splice(
     middle = np.concatenate((out[out_a:lo], new_rows.reshape(-1), out[hi:out_b]))
     prime_bits = bit_a & 7
     prime_value = deflate[bit_a >> 3] & ((1 << prime_bits) - 1) if prime_bits else 0
-    window = out[max(0, out_a - MAX_DISTANCE) : out_a]
-    if level == 0:  # stored blocks: libz's level 0, primed
-        compressed = _deflate_raw(
-            z, middle, level, window, prime_bits, prime_value, finish=tail is None
-        )
-    else:
-        compressed = _deflate_isal(
-            middle, isal_level(level), window, prime_bits, prime_value, finish=tail is None
-        )
+    compressed = _deflate_middle(
+        middle,
+        level,
+        out[max(0, out_a - MAX_DISTANCE) : out_a],
+        prime_bits,
+        prime_value,
+        finish=tail is None,
+    )
 
     src_adler = int.from_bytes(png.zdata[-4:], "big")
     head_adler = zlib.adler32(out[:out_a].data)
@@ -563,58 +532,6 @@ def _inflate_prefix(
         z.inflateEnd(ctypes.byref(strm))
 
 
-def _deflate_raw(
-    z: _Libz,
-    data: NDArray[np.uint8],
-    level: int,
-    dictionary: NDArray[np.uint8],
-    prime_bits: int,
-    prime_value: int,
-    *,
-    finish: bool,
-) -> bytes:
-    """Raw deflate of ``data`` (n,) uint8 continuing a stream: after ``prime_bits`` bits
-    ``prime_value`` and with ``dictionary`` (m,) uint8 as history; ends with
-    ``Z_FINISH`` (final block) when ``finish``, else ``Z_SYNC_FLUSH`` (byte aligned)."""
-    data = np.ascontiguousarray(data)
-    dictionary = np.ascontiguousarray(dictionary)
-    strm = _ZStream()
-    ref = ctypes.byref(strm)
-    ret = z.deflateInit2_(
-        ref,
-        level,
-        _Z_DEFLATED,
-        -_WINDOW_BITS,
-        _MEM_LEVEL,
-        _Z_DEFAULT_STRATEGY,
-        z.version,
-        ctypes.sizeof(strm),
-    )
-    _zcheck(ret, "deflateInit2")
-    try:
-        if dictionary.size:
-            ret = z.deflateSetDictionary(ref, dictionary.ctypes.data, dictionary.size)
-            _zcheck(ret, "deflateSetDictionary")
-        if prime_bits:
-            _zcheck(z.deflatePrime(ref, prime_bits, prime_value), "deflatePrime")
-        size = int(z.deflateBound(ref, data.size)) + 64
-        buf = np.empty(size, dtype=np.uint8)
-        pieces: list[bytes] = []
-        strm.next_in = data.ctypes.data
-        strm.avail_in = data.size
-        flush = _Z_FINISH if finish else _Z_SYNC_FLUSH
-        while True:
-            strm.next_out = buf.ctypes.data
-            strm.avail_out = buf.size
-            ret = z.deflate(ref, flush)
-            pieces.append(buf[: buf.size - strm.avail_out].tobytes())
-            if ret == _Z_STREAM_END or (not finish and strm.avail_out and not strm.avail_in):
-                return b"".join(pieces)
-            _zcheck(ret, "deflate")
-    finally:
-        z.deflateEnd(ref)
-
-
 def isal_level(level: int) -> int:
     """ISA-L's deflate level (1-3) for a zlib level 1-9: 1-3 -> 1, 4-6 -> 2, 7-9 -> 3.
 
@@ -624,7 +541,7 @@ def isal_level(level: int) -> int:
     return 1 + (min(max(level, 1), 9) - 1) // 3
 
 
-def _deflate_isal(
+def _deflate_middle(
     data: NDArray[np.uint8],
     level: int,
     dictionary: NDArray[np.uint8],
@@ -633,22 +550,25 @@ def _deflate_isal(
     *,
     finish: bool,
 ) -> bytes:
-    """:func:`_deflate_raw` with ISA-L's deflater (``level`` 1-3), which has no
-    ``deflatePrime``: after ``prime_bits`` bits an empty stored block (3 header bits of
-    zeros, padding to the byte, LEN 0 and NLEN 0xFFFF) brings the stream to a byte
-    boundary, where ISA-L's raw stream, with ``dictionary`` as history, is appended."""
+    """Raw deflate of ``data`` (n,) uint8 continuing a stream that ends ``prime_bits`` bits
+    ``prime_value`` into a byte, with ``dictionary`` (m,) uint8 as history; ends with
+    ``Z_FINISH`` (final block) when ``finish``, else ``Z_SYNC_FLUSH`` (byte aligned).
+
+    ``level`` is zlib's (0-9): 0 writes stored blocks (Python's zlib), 1-9 ISA-L's
+    deflater at :func:`isal_level`. Neither continues a stream mid-byte (libz's
+    ``deflatePrime`` is not in Python's zlib, ISA-L has none), so an empty stored block
+    after the pending bits (3 header bits of zeros, padding to the byte, LEN 0, NLEN
+    0xFFFF) first brings the stream to a byte boundary."""
     lead = b""
     if prime_bits:
         lead = bytes((prime_value,)) + (b"\x00" if prime_bits > 5 else b"") + b"\x00\x00\xff\xff"
-    comp = (
-        isal_zlib.compressobj(
-            level, isal_zlib.DEFLATED, -_WINDOW_BITS, zdict=np.ascontiguousarray(dictionary).data
-        )
-        if dictionary.size
-        else isal_zlib.compressobj(level, isal_zlib.DEFLATED, -_WINDOW_BITS)
+    lib: Any = zlib if level == 0 else isal_zlib
+    extra = {"zdict": np.ascontiguousarray(dictionary).data} if dictionary.size else {}
+    comp = lib.compressobj(
+        0 if level == 0 else isal_level(level), lib.DEFLATED, -_WINDOW_BITS, **extra
     )
     body = comp.compress(np.ascontiguousarray(data).data)
-    end = comp.flush(isal_zlib.Z_FINISH if finish else isal_zlib.Z_SYNC_FLUSH)
+    end = comp.flush(lib.Z_FINISH if finish else lib.Z_SYNC_FLUSH)
     return b"".join((lead, body, end))
 
 
