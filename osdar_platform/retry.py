@@ -127,8 +127,8 @@ class RetryingStore:
             on_retry=self.on_retry,
         )
 
-    def put_file(self, key: str, path: str | Path) -> None:
-        self._do("put_file", key, lambda: self.inner.put_file(key, path))
+    def put_file(self, key: str, path: str | Path, *, consume: bool = False) -> None:
+        self._do("put_file", key, lambda: self.inner.put_file(key, path, consume=consume))
 
     def put_bytes(self, key: str, data: bytes) -> None:
         self._do("put_bytes", key, lambda: self.inner.put_bytes(key, data))

@@ -8,6 +8,7 @@ target, then ``os.replace``; S3: an object appears only once its upload complete
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 import tempfile
@@ -47,8 +48,10 @@ def check_key(key: str) -> str:
 class ObjectStore(Protocol):
     """What the service and the workers need from an object store."""
 
-    def put_file(self, key: str, path: str | Path) -> None:
-        """Store the file at ``path`` under ``key`` atomically."""
+    def put_file(self, key: str, path: str | Path, *, consume: bool = False) -> None:
+        """Store the file at ``path`` under ``key`` atomically. ``consume``: the caller
+        will not write to ``path`` again (only delete it), so the store may take the
+        file's bytes as they are instead of copying them (local: a hard link)."""
 
     def put_bytes(self, key: str, data: bytes) -> None:
         """Store ``data`` under ``key`` atomically."""
@@ -97,12 +100,40 @@ class LocalStore:
             Path(tmp).unlink(missing_ok=True)
             raise
 
-    def put_file(self, key: str, path: str | Path) -> None:
+    def put_file(self, key: str, path: str | Path, *, consume: bool = False) -> None:
+        if consume and self._link(key, Path(path)):
+            return
+
         def write(f: BinaryIO) -> None:
             with open(path, "rb") as src:
                 shutil.copyfileobj(src, f, CHUNK)
 
         self._atomic(key, write)
+
+    def _link(self, key: str, path: Path) -> bool:
+        """``path`` under ``key`` as a hard link (its data synced first, then the link
+        renamed into place): no byte copied. False where the file system cannot link
+        there (another device, no hard links); the caller copies then."""
+        target = self._path(key)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.parent / f".{target.name}.{os.getpid()}.{os.urandom(4).hex()}.link"
+        try:
+            os.link(path, tmp)
+        except OSError as exc:
+            if exc.errno in (errno.EXDEV, errno.EPERM, errno.EMLINK, errno.ENOTSUP):
+                return False
+            raise
+        try:
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            os.replace(tmp, target)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        return True
 
     def put_bytes(self, key: str, data: bytes) -> None:
         self._atomic(key, lambda f: f.write(data))
@@ -218,7 +249,7 @@ class S3Store:
         except ClientError:
             self.client.create_bucket(Bucket=self.bucket)
 
-    def put_file(self, key: str, path: str | Path) -> None:
+    def put_file(self, key: str, path: str | Path, *, consume: bool = False) -> None:
         # upload_file switches to a multipart upload for big files; the object becomes
         # visible only when CompleteMultipartUpload succeeds.
         self._call(

@@ -111,6 +111,43 @@ def test_local_writes_are_atomic(tmp_path: Path) -> None:
     assert store.list() == ["k/result.tar"]
 
 
+def test_a_consumed_file_is_stored_whole_and_outlives_its_source(
+    store: ObjectStore, tmp_path: Path
+) -> None:
+    """``consume=True``: the caller only deletes the file afterwards; the stored object
+    is the file's bytes (local: the same inode, no byte copied) and survives the delete
+    and a new file written at the source's path."""
+    src = tmp_path / "chunk.tar"
+    src.write_bytes(b"\2" * 300_000)
+    store.put_file("jobs/j/chunks/0000.tar", src, consume=True)
+    if isinstance(store, LocalStore):
+        assert store._path("jobs/j/chunks/0000.tar").stat().st_ino == src.stat().st_ino
+        assert list(store.root.rglob("*.link")) == []  # no temporary left
+    src.unlink()
+    src.write_bytes(b"new")  # a new file at the old path
+    assert b"".join(store.open_read("jobs/j/chunks/0000.tar")) == b"\2" * 300_000
+    store.put_file("jobs/j/chunks/0000.tar", src, consume=True)  # replaces atomically
+    assert b"".join(store.open_read("jobs/j/chunks/0000.tar")) == b"new"
+
+
+def test_a_consumed_file_on_another_device_is_copied(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import errno
+    import os
+
+    def cross_device(src: object, dst: object) -> None:
+        raise OSError(errno.EXDEV, "Invalid cross-device link")
+
+    monkeypatch.setattr(os, "link", cross_device)
+    store = LocalStore(tmp_path / "s")
+    src = tmp_path / "a.bin"
+    src.write_bytes(b"abc" * 1000)
+    store.put_file("k/a.bin", src, consume=True)
+    assert store._path("k/a.bin").stat().st_ino != src.stat().st_ino
+    assert b"".join(store.open_read("k/a.bin")) == b"abc" * 1000
+
+
 def test_s3_object_appears_only_complete(s3_endpoint: str, tmp_path: Path) -> None:
     """A multipart upload (past the 8 MB threshold) is invisible until completed."""
     settings = _s3_settings(s3_endpoint, "multipart")

@@ -123,7 +123,7 @@ def augment(
         shutil.rmtree(scratch, ignore_errors=True)
         scratch.mkdir(parents=True)
         tic = time.perf_counter()
-        chunks = run_frames(plan, scratch, pool, progress)
+        chunks = run_frames(plan, scratch, pool, progress, evaluate=evaluate)
         extra["frames_total_wall"] = time.perf_counter() - tic
         extra["job_before_finish"] = time.perf_counter() - t0
         metrics = finish_augmentation(

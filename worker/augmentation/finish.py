@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from worker.augmentation.annotations import add_object, builtin_provenance
 from worker.augmentation.frame import STAGE_KEYS, ChunkResult, FrameRecord
 from worker.augmentation.plan import Plan, PlannedObject
-from worker.evaluation.object_error import evaluate_object
+from worker.evaluation.object_error import evaluate_object, wants_object_errors
 from worker.json_values import jsonable
 from worker.osdar.labels import load_labels
 from worker.osdar.writer import SequenceWriter
@@ -95,8 +95,8 @@ def finish_augmentation(
             }
         )
         if evaluate and (seq_root / "ground_truth").is_dir():
-            if len(plan.objects) == 1 and not plan.objects[0].moving:
-                _evaluate_object(metrics, plan, records)
+            if wants_object_errors(plan):
+                _evaluate_object(metrics, plan, chunks, records)
             else:  # the reference render knows one static object, unoccluded by others
                 metrics["object_errors"] = {
                     "skipped": "the object errors are measured for one static object only"
@@ -228,12 +228,16 @@ def _object_metrics(
     }
 
 
-def _evaluate_object(metrics: dict[str, Any], plan: Plan, records: list[FrameRecord]) -> None:
+def _evaluate_object(
+    metrics: dict[str, Any], plan: Plan, chunks: list[ChunkResult], records: list[FrameRecord]
+) -> None:
     """The object's errors against a render with the true poses (sequences with ground
-    truth); a failure is recorded, never raised."""
+    truth): the chunks' per-frame values, the frames they lack measured here; a failure
+    is recorded, never raised."""
     tic = time.perf_counter()
     try:
-        metrics["object_errors"] = evaluate_object(plan, records)
+        measured = {f: v for ch in chunks for f, v in ch.object_errors.items()}
+        metrics["object_errors"] = evaluate_object(plan, records, measured=measured)
     except (ValueError, OSError, KeyError) as exc:
         log.warning("object evaluation failed: %s", exc)
         metrics["object_errors"] = {"error": str(exc)}

@@ -153,6 +153,10 @@ class ChunkResult:
     files: list[str]
     frames: list[FrameRecord]
     seconds: float = 0.0
+    #: the object's errors against the true poses, measured where the frames were
+    #: augmented (sequences with ground truth): {frame: {camera: {anchor_px, iou}}}
+    #: (worker/evaluation/object_error.py; frames not here are measured by the finish)
+    object_errors: dict[int, dict[str, dict[str, float | None]]] = field(default_factory=dict)
 
 
 def camera_renderer(cam: CameraModel, antialias: str) -> Any:

@@ -26,6 +26,7 @@ from osdar_platform.settings import get_settings
 from worker.augmentation.frame import ChunkResult, augment_frames, camera_renderer
 from worker.augmentation.plan import Plan
 from worker.augmentation.records import dump_chunk, dump_plan, load_chunk, read_plan
+from worker.evaluation.object_error import measure_chunk
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +126,9 @@ def start_pool(
 _PLAN_CACHE: dict[str, Plan] = {}
 
 
-def _augment_frames_from_file(plan_file: str, frames: list[int], out_root: str) -> bytes:
+def _augment_frames_from_file(
+    plan_file: str, frames: list[int], out_root: str, evaluate: bool = False
+) -> bytes:
     """In a pool process: the frames of the plan in ``plan_file``; the chunk's records
     come back as a record (:mod:`.records`), the plan goes in as one: nothing a process
     receives is unpickled into code."""
@@ -133,7 +136,15 @@ def _augment_frames_from_file(plan_file: str, frames: list[int], out_root: str) 
     if plan is None:
         _PLAN_CACHE.clear()
         plan = _PLAN_CACHE[plan_file] = read_plan(plan_file)
-    return dump_chunk(augment_frames(plan, frames, out_root))
+    return dump_chunk(_augment(plan, frames, out_root, evaluate))
+
+
+def _augment(plan: Plan, frames: list[int], out_root: str | Path, evaluate: bool) -> ChunkResult:
+    """The frames, and with ``evaluate`` their object errors (:func:`.measure_chunk`)."""
+    chunk = augment_frames(plan, frames, out_root)
+    if evaluate:
+        measure_chunk(plan, chunk)
+    return chunk
 
 
 def frame_order(frames: list[int], n_children: int) -> list[int]:
@@ -148,11 +159,12 @@ def frame_order(frames: list[int], n_children: int) -> list[int]:
 
 
 def run_frames(
-    plan: Plan, scratch: Path, pool: Any, progress: Progress | None
+    plan: Plan, scratch: Path, pool: Any, progress: Progress | None, *, evaluate: bool = False
 ) -> list[ChunkResult]:
     """All frames of the plan, one per task. With a pool of n - 1 processes, this
     process is the n-th worker: it takes frames itself while the others start up and
-    between collecting their results (each child keeps two frames queued)."""
+    between collecting their results (each child keeps two frames queued). ``evaluate``:
+    each frame's object errors are measured where it is augmented."""
     total = len(plan.frames)
     n_children = 0 if pool is None else pool._max_workers
     pending = list(reversed(frame_order(plan.frames, n_children)))
@@ -164,7 +176,7 @@ def run_frames(
 
     if pool is None:
         while pending:
-            chunks.append(augment_frames(plan, [pending.pop()], scratch))
+            chunks.append(_augment(plan, [pending.pop()], scratch, evaluate))
             report()
         return chunks
     # The plan goes to the workers once, as a file; each task names it.
@@ -174,9 +186,11 @@ def run_frames(
     while pending or futures:
         while pending and len(futures) < 2 * n_children:
             f = pending.pop()
-            futures.add(pool.submit(_augment_frames_from_file, str(plan_file), [f], str(scratch)))
+            futures.add(
+                pool.submit(_augment_frames_from_file, str(plan_file), [f], str(scratch), evaluate)
+            )
         if pending:
-            chunks.append(augment_frames(plan, [pending.pop()], scratch))
+            chunks.append(_augment(plan, [pending.pop()], scratch, evaluate))
             report()
             timeout = 0.0
         else:

@@ -67,6 +67,7 @@ from worker.augmentation.records import (
     read_plan,
 )
 from worker.augmentation.spec import AugmentSpec, MeshFile
+from worker.evaluation.object_error import measure_chunk
 from worker.orchestration import chunk_join, lease, state
 from worker.orchestration.lease import database_unreachable
 from worker.orchestration.shared_results import rpe_plot, sequence_evaluation
@@ -555,19 +556,23 @@ def augment_chunk(
         for f in frames:  # one frame at a time: progress, and a cancel stops here
             state.check_attempt(run.job_id, run.attempt, settings=run.settings)
             part = augment_frames(plan, [f], out)
+            measure_chunk(plan, part)  # the finish only sums the errors up
             if result is None:
                 result = part
             else:
                 result.files += part.files
                 result.frames += part.frames
                 result.seconds += part.seconds
+                result.object_errors.update(part.object_errors)
             state.add_progress(run.job_id, run.attempt, 1, settings=run.settings)
         files_key = f"{run.prefix}chunks/{index:04d}.tar"
         records_key = f"{run.prefix}chunks/{index:04d}.npz"
         tar_path = out.with_suffix(".tar")
+        # a new file, never one rewritten in place: the store may hold a link to the old
+        tar_path.unlink(missing_ok=True)
         with tarfile.open(tar_path, "w") as tar:
             tar.add(out, arcname=".")
-        run.store.put_file(files_key, tar_path)
+        run.store.put_file(files_key, tar_path, consume=True)
         tar_path.unlink(missing_ok=True)
         assert result is not None  # a chunk has at least one frame
         run.store.put_bytes(records_key, dump_chunk(result))
@@ -746,12 +751,12 @@ def upload_and_publish(run: JobRun, archive: Path) -> str | None:
     (another attempt won: this attempt's objects are deleted).
     """
     key = f"{run.prefix}{ARCHIVE_NAME}"
-    run.store.put_file(key, archive)
+    run.store.put_file(key, archive, consume=True)
     previews = []
     folder = run.workdir / "report" / "previews"
     for p in sorted(folder.glob("*.png")) if folder.is_dir() else []:
         pkey = f"{run.previews_prefix}{p.name}"
-        run.store.put_file(pkey, p)
+        run.store.put_file(pkey, p, consume=True)
         previews.append(pkey)
     won = state.publish_result(
         run.job_id, run.attempt, key, settings=run.settings, previews=previews
