@@ -123,6 +123,7 @@ class Run:
     thread_split: str = ""  # the worker children's threads by name
     idle_parts: list[float] = field(default_factory=list)  # idle cores per tenth of it
     task_s: dict[str, tuple[int, float]] = field(default_factory=dict)  # from the worker log
+    edges: str = ""  # each process's idle before its first and after its last task
     single_stages: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -224,6 +225,7 @@ def run_campaign(
         )
         run.thread_split += f"; main + llvmpipe threads wanting a CPU {split.demand():.2f}"
         run.task_s = _task_seconds(log, log_at)
+        run.edges = _process_edges(log, log_at)
         run.cores = (svc.cpu_s() - cpu0) / run.wall_s
         on1, wait1 = svc.sched_s()
         run.runqueue_s = wait1 - wait0
@@ -256,6 +258,31 @@ def _task_seconds(log: Path, offset: int) -> dict[str, tuple[int, float]]:
                 n, sec = out.get(m[1], (0, 0.0))
                 out[m[1]] = (n + 1, sec + float(m[2]))
     return out
+
+
+def _process_edges(log: Path, offset: int) -> str:
+    """Per worker process, from the worker log after ``offset`` (each task's end stamp
+    less its seconds): how long it waited for its first task after the campaign's first
+    one started, and how long it sat idle after its last task before the campaign's last
+    one ended (the expansion at the start, the last variant's serial stages at the end)."""
+    spans: dict[str, list[tuple[float, float]]] = {}
+    with open(log, "rb") as f:
+        f.seek(offset)
+        for line in f.read().decode(errors="replace").splitlines():
+            m = re.match(r"\[(\S+ \S+): \w+/(ForkPoolWorker-\d+)\] Task osdar_ar\.\w+\[[^]]*\] "
+                         r"succeeded in ([0-9.]+)s", line)  # fmt: skip
+            if m:
+                end = datetime.strptime(m[1], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+                spans.setdefault(m[2], []).append((end - float(m[3]), end))
+    if not spans:
+        return "no task lines"
+    first = min(a for v in spans.values() for a, _ in v)
+    last = max(b for v in spans.values() for _, b in v)
+    return ", ".join(
+        f"{w}: {min(a for a, _ in v) - first:.2f} s before its first task, "
+        f"{last - max(b for _, b in v):.2f} s after its last"
+        for w, v in sorted(spans.items())
+    )
 
 
 def _job_of(variant: dict[str, Any]) -> dict[str, Any]:
@@ -306,6 +333,7 @@ def report(ones: list[Run], two: Run) -> None:
         print(f"  the worker children's threads (cores): {r.thread_split}")
         print("  tasks (count, seconds): " + ", ".join(
             f"{k} {n} {sec:.1f}" for k, (n, sec) in sorted(r.task_s.items())))  # fmt: skip
+        print(f"  the campaign's edges: {r.edges}")
     for one in ones:
         ratio = two.per_min / one.per_min
         print(f"throughput ratio 2 / 1 workers ({one.threads_label} in the 1): {ratio:.2f} "

@@ -198,8 +198,11 @@ def test_publish_twice_keeps_one_result_and_removes_the_losers_object(
     assert runner.upload_and_publish(first, archive) == f"jobs/{job_id}/attempt-1/archive.tar.gz"
     # a second attempt that got as far as publishing (stale delivery racing): loses
     second = runner.JobRun(job_id, attempt + 1, settings)
-    archive.write_bytes(b"archive of attempt 2")
-    assert runner.upload_and_publish(second, archive) is None
+    # its own archive file (the store may hold the first one's bytes as a link:
+    # upload_and_publish takes the file, rewriting it in place is not allowed)
+    archive_2 = tmp_path / "b.tar.gz"
+    archive_2.write_bytes(b"archive of attempt 2")
+    assert runner.upload_and_publish(second, archive_2) is None
 
     job = _job(settings, job_id)
     assert job.state == JobState.SUCCEEDED
