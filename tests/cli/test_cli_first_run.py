@@ -88,3 +88,18 @@ def test_demo_tables_name_the_paper_rpe_and_the_true_error_apart() -> None:
     assert paper < true
     assert "2.70" in " ".join(lines[paper:true]) and "12.50" not in " ".join(lines[paper:true])
     assert "12.50" in " ".join(lines[true:])
+
+
+def test_demo_tables_show_the_paper_rpe_of_synthetic_clicks() -> None:
+    """Without clicks of the user's, the evaluation clicks the synthetic landmarks and
+    keeps the paper RPE per track under ``paper_rpe`` (worker/evaluation/evaluate.py):
+    the demo's table shows every track's row (it printed the header alone)."""
+    st = {"rpe_mean": 0.27, "rpe_std": 0.17, "jitter_mean": 0.048, "jitter_std": 0.035, "n": 59}
+    ins = {"rpe_mean": 31.4, "rpe_std": 5.0, "jitter_mean": 2.1, "jitter_std": 1.0, "n": 59}
+    ev = {"strategy": "fused", "paper_rpe": {"rgb_center": {"auto": st, "ins": ins}}}
+    lines = rpe_tables(ev, {})
+    rows = [s.split() for s in lines[2:]]
+    assert rows == [
+        ["rgb_center", "auto", "0.27", "±", "0.17", "0.05", "±", "0.04"],
+        ["rgb_center", "ins", "31.40", "±", "5.00", "2.10", "±", "1.00"],
+    ]

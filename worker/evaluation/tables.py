@@ -18,9 +18,17 @@ def rpe_tables(ev: dict[str, Any], gt: dict[str, Any]) -> list[str]:
     comparable with the paper's table) and, on synthetic data, the true error (the true 3D
     landmarks projected with the estimated poses against their true pixels)."""
     lines = ["  paper RPE / jitter (calibration point from the clicks, as the paper):"]
-    lines.append(f"  {'camera':<20} {'RPE px':>16} {'jitter px':>16}")
-    for cam, m in (ev.get("rpe") or {}).items():
-        lines.append(f"  {cam:<20} {_fmt(m.get('rpe_px')):>16} {_fmt(m.get('jitter_px')):>16}")
+    lines.append(f"  {'camera':<20} {'track':<10} {'RPE px':>16} {'jitter px':>16}")
+    chosen = str(ev.get("strategy") or "")
+    for cam, m in (ev.get("rpe") or {}).items():  # the user's clicks: the chosen track
+        rpe, jit = _fmt(m.get("rpe_px")), _fmt(m.get("jitter_px"))
+        lines.append(f"  {cam:<20} {chosen:<10} {rpe:>16} {jit:>16}")
+    if not ev.get("rpe"):  # synthetic clicks on the landmarks: every track evaluated
+        for cam, tracks in (ev.get("paper_rpe") or {}).items():
+            for name, st in tracks.items():
+                rpe = _fmt({"mean": st.get("rpe_mean"), "std": st.get("rpe_std")})
+                jit = _fmt({"mean": st.get("jitter_mean"), "std": st.get("jitter_std")})
+                lines.append(f"  {cam:<20} {name:<10} {rpe:>16} {jit:>16}")
     landmark = gt.get("landmark_rpe") or {}
     if landmark:
         lines.append("  true error of the ground-truth landmarks (synthetic data only):")
