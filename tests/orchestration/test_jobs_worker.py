@@ -306,6 +306,10 @@ def test_a_chunk_delivered_again_is_counted_once_and_not_redone(
     assert chunk_join.claim_finish(job_id, kw["attempt"], settings=settings) is None
     assert runner.augment_chunk(job_id, 0, plan[0], **kw) == first  # delivered again
     second = runner.augment_chunk(job_id, 1, plan[1], **kw)
+    # each chunk measured its own frames' object errors (the finish only sums them up)
+    for c, frames in ((first, plan[0]), (second, plan[1])):
+        record = runner.load_chunk(b"".join(run.store.open_read(c["records"])))
+        assert sorted(record.object_errors) == sorted(frames)
     token = chunk_join.claim_finish(job_id, kw["attempt"], settings=settings)
     assert token is not None
     assert chunk_join.claim_finish(job_id, kw["attempt"], settings=settings) is None

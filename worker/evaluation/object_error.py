@@ -110,7 +110,9 @@ def object_truth(plan: Any, truth: Any = None) -> ObjectTruth:
     default :func:`truth_prepared`); cached per sequence and spec unless ``truth`` is
     given."""
 
-    key = (str(plan.seq_folder), plan.spec.model_dump_json())
+    # the true pose of a world-frame placement depends on the estimated world frame too
+    world = json.dumps(plan.info.get("world"), sort_keys=True, default=str)
+    key = (str(plan.seq_folder), plan.spec.model_dump_json() + world)
     if truth is None and key in _TRUTHS:
         return _TRUTHS[key]
     given = truth is not None
