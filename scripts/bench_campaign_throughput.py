@@ -246,17 +246,28 @@ def run_campaign(
     return run
 
 
-def _task_seconds(log: Path, offset: int) -> dict[str, tuple[int, float]]:
-    """(count, seconds) of each task that succeeded in the worker log after ``offset``
-    (Celery's "Task <name>[<id>] succeeded in <s>s" lines)."""
-    out: dict[str, tuple[int, float]] = {}
+def _task_lines(log: Path, offset: int) -> list[tuple[str, str, float, float]]:
+    """(process, task, start, end) of each task that succeeded in the worker log after
+    ``offset`` (Celery's "[stamp: INFO/ForkPoolWorker-N] Task osdar_ar.<name>[<id>]
+    succeeded in <s>s" lines; the start is the end stamp less the seconds)."""
+    out = []
     with open(log, "rb") as f:
         f.seek(offset)
         for line in f.read().decode(errors="replace").splitlines():
-            m = re.search(r"Task osdar_ar\.(\w+)\[[^]]*\] succeeded in ([0-9.]+)s", line)
+            m = re.match(r"\[(\S+ \S+): \w+/([\w-]+)\] Task osdar_ar\.(\w+)\[[^]]*\] "
+                         r"succeeded in ([0-9.]+)s", line)  # fmt: skip
             if m:
-                n, sec = out.get(m[1], (0, 0.0))
-                out[m[1]] = (n + 1, sec + float(m[2]))
+                end = datetime.strptime(m[1], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+                out.append((m[2], m[3], end - float(m[4]), end))
+    return out
+
+
+def _task_seconds(log: Path, offset: int) -> dict[str, tuple[int, float]]:
+    """(count, seconds) of each task that succeeded in the worker log after ``offset``."""
+    out: dict[str, tuple[int, float]] = {}
+    for _, name, start, end in _task_lines(log, offset):
+        n, sec = out.get(name, (0, 0.0))
+        out[name] = (n + 1, sec + end - start)
     return out
 
 
@@ -266,14 +277,9 @@ def _process_edges(log: Path, offset: int) -> str:
     one started, and how long it sat idle after its last task before the campaign's last
     one ended (the expansion at the start, the last variant's serial stages at the end)."""
     spans: dict[str, list[tuple[float, float]]] = {}
-    with open(log, "rb") as f:
-        f.seek(offset)
-        for line in f.read().decode(errors="replace").splitlines():
-            m = re.match(r"\[(\S+ \S+): \w+/(ForkPoolWorker-\d+)\] Task osdar_ar\.\w+\[[^]]*\] "
-                         r"succeeded in ([0-9.]+)s", line)  # fmt: skip
-            if m:
-                end = datetime.strptime(m[1], "%Y-%m-%d %H:%M:%S,%f").timestamp()
-                spans.setdefault(m[2], []).append((end - float(m[3]), end))
+    for proc, _, start, end in _task_lines(log, offset):
+        if proc.startswith("ForkPoolWorker"):
+            spans.setdefault(proc, []).append((start, end))
     if not spans:
         return "no task lines"
     first = min(a for v in spans.values() for a, _ in v)
