@@ -200,31 +200,50 @@ def test_output_sequence_is_complete_and_loads(seq: Path, truth_run) -> None:
 def test_augmented_pngs_are_spliced_and_exact(
     seq: Path, truth, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Only the rows the object changed are compressed anew (worker/osdar/png_splice.py):
-    every changed camera image of a job is spliced into its source's PNG, and the file
-    written decodes to exactly the composited image."""
+    """Only the rows down to the object's window are decoded and only the rows the object
+    changed are compressed anew (worker/osdar/png_splice.py): every changed camera image of
+    a job is spliced into its source's PNG, and the file written decodes to exactly the
+    composited rows above and the source's below."""
     from worker.augmentation import frame as frame_module
 
-    real = frame_module.splice_png
-    calls: list[tuple[tuple[int, int], int]] = []
+    real = frame_module.splice_decoded
+    calls: list[tuple[tuple[int, int], int, int]] = []
 
-    def checked(src: bytes, img: np.ndarray, rows: tuple[int, int], level: int):
-        out = real(src, img, rows, level)
+    def checked(decoded, img: np.ndarray, rows: tuple[int, int], level: int):
+        out = real(decoded, img, rows, level)
         assert out is not None, rows
-        decoded = cv2.imdecode(np.frombuffer(out, np.uint8), cv2.IMREAD_UNCHANGED)
-        np.testing.assert_array_equal(decoded, img)
-        calls.append((rows, img.shape[0]))
+        got = cv2.imdecode(np.frombuffer(out.png, np.uint8), cv2.IMREAD_UNCHANGED)
+        src = cv2.imdecode(np.frombuffer(decoded.src, np.uint8), cv2.IMREAD_UNCHANGED)
+        n = img.shape[0]
+        np.testing.assert_array_equal(got[:n], img)
+        np.testing.assert_array_equal(got[n:], src[n:])
+        calls.append((rows, n, decoded.height))
         return out
 
-    monkeypatch.setattr(frame_module, "splice_png", checked)
+    real_whole = frame_module.splice_png
+
+    def checked_whole(src: bytes, img: np.ndarray, rows: tuple[int, int], level: int):
+        # the frames the plan decoded whole for the lighting
+        out = real_whole(src, img, rows, level)
+        assert out is not None, rows
+        got = cv2.imdecode(np.frombuffer(out, np.uint8), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(got, img)
+        calls.append((rows, img.shape[0], img.shape[0]))
+        return out
+
+    monkeypatch.setattr(frame_module, "splice_decoded", checked)
+    monkeypatch.setattr(frame_module, "splice_png", checked_whole)
     spec = _spec(seq, "s=22,offset=0,yaw=90").model_copy(
         update={"render": RenderSpec(lidar_noise=False)}
     )
     _, chunk = _run(seq, truth, spec, tmp_path / "scratch")
     changed = sum(cr.visible for rec in chunk.frames for cr in rec.cameras.values())
     assert changed > 0 and len(calls) == changed
-    # the band is where the object is, not the whole image
-    assert all(0 < r0 < r1 <= h for (r0, r1), h in calls)
+    # the band is where the object is, not the whole image; above the bottom rows, fewer
+    # rows than the image's were decoded
+    assert all(0 < r0 < r1 <= n <= h for (r0, r1), n, h in calls)
+    assert all(n in (min(r1 + 1, h), h) for (_, r1), n, h in calls)  # down to the band
+    assert any(n < h for _, n, h in calls)
 
 
 def test_the_labels_say_which_builtin_was_placed(truth_run) -> None:

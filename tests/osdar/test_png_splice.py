@@ -24,7 +24,9 @@ from worker.osdar.png_splice import (
     _libz,
     adler32_combine,
     adler32_tail,
+    decode_rows,
     isal_level,
+    splice_decoded,
     splice_png,
     splice_png_result,
 )
@@ -479,3 +481,59 @@ def test_caller_errors_raise() -> None:
         splice_png(src, img.astype(np.float32), (10, 20), 1)
     with pytest.raises(ValueError, match="uint8"):
         splice_png(src, img[..., 0], (10, 20), 1)
+
+
+# --- decoding the rows a splice needs ----------------------------------------------------
+
+
+@pytest.mark.parametrize("band", list(BANDS))
+@pytest.mark.parametrize("source", SOURCES)
+def test_decoded_rows_splice_to_the_new_image(source: str, band: str) -> None:
+    """The rows down to the band's end (and the one below) decode to the source's, and
+    their splice is the whole file's splice: the same PNG bytes."""
+    h, w = 480, 640
+    src = source_png(h, w, source)
+    r0, r1 = band_rows(h, band)
+    new = changed(camera_like(h, w), r0, r1)
+    n = min(r1 + 1, h)
+    decoded = decode_rows(src, n)
+    assert decoded is not None and decoded.height == h
+    np.testing.assert_array_equal(decoded.img_bgr, camera_like(h, w)[:n])
+    res = splice_decoded(decoded, new[:n].copy(), (r0, r1), 1)
+    assert res is not None
+    assert_valid_png_of(res.png, new)
+    assert res.png == splice_png(src, new, (r0, r1), 1)
+
+
+def test_decoded_rows_of_more_than_the_image_are_all_of_it() -> None:
+    src = source_png(120, 160, "pil-6")
+    decoded = decode_rows(src, 10_000)
+    assert decoded is not None
+    np.testing.assert_array_equal(decoded.img_bgr, camera_like(120, 160))
+    unchanged = splice_decoded(decoded, decoded.img_bgr.copy(), (50, 50), 1)
+    assert unchanged is not None and unchanged.png == src
+
+
+@pytest.mark.parametrize(
+    "case", [c for c in NOT_SPLICABLE if not c.startswith("wrong ")] + ["wrong Adler-32"]
+)
+def test_unsplicable_sources_do_not_decode_rows(case: str) -> None:
+    """What splice_png refuses, decode_rows refuses too (or, where the damage lies past the
+    rows, splice_decoded): the caller then decodes and encodes the whole file."""
+    src, _, (r0, r1) = NOT_SPLICABLE[case]
+    decoded = decode_rows(src, r1 + 1)
+    if decoded is not None:
+        assert splice_decoded(decoded, decoded.img_bgr.copy(), (r0, r1), 1) is None
+
+
+def test_decoded_rows_caller_errors_raise() -> None:
+    src = source_png(480, 640, "cv2-1")
+    decoded = decode_rows(src, 100)
+    assert decoded is not None
+    img = decoded.img_bgr.copy()
+    with pytest.raises(ValueError, match="need more"):
+        splice_decoded(decoded, img, (10, 100), 1)  # row 100 is filtered against row 99
+    with pytest.raises(ValueError, match="level"):
+        splice_decoded(decoded, img, (10, 20), 10)
+    with pytest.raises(ValueError, match="uint8"):
+        splice_decoded(decoded, img[:50], (10, 20), 1)
