@@ -58,7 +58,7 @@ from numpy.typing import NDArray
 
 from renderer.camera_optics import APERTURE_M, EXPOSURE_S
 from renderer.frame_blur import estimate_blur_sigma
-from renderer.lighting import SRGB8_TO_LINEAR, linear_to_srgb, srgb_to_linear
+from renderer.lighting import SRGB8_TO_LINEAR, linear_to_srgb
 from renderer.object_render import ObjectRender
 from renderer.sensor_noise import NoiseProfile, add_noise, estimate_noise, noise_weight
 
@@ -221,7 +221,9 @@ def _lab_match(
     real = frame_rgb[b0:b1, a0:a1][ring].astype(np.float32)[:, None] / 255.0
     L_r = cv2.cvtColor(real, cv2.COLOR_RGB2Lab)[:, 0, 0]
     has = alpha > 0
-    lab = cv2.cvtColor(linear_to_srgb(color_lin[has])[:, None], cv2.COLOR_RGB2Lab)
+    # the object's colour is linear already: OpenCV's linear-RGB conversions, not its
+    # sRGB ones after an encode of ours (a third of this function's time on a fallen tree)
+    lab = cv2.cvtColor(np.clip(color_lin[has], 0.0, 1.0)[:, None], cv2.COLOR_LRGB2Lab)
     L_o = lab[:, 0, 0][obj[has]]
     mu_o, sd_o = float(L_o.mean()), float(L_o.std())
     mu_r, sd_r = float(L_r.mean()), float(L_r.std())
@@ -231,7 +233,7 @@ def _lab_match(
     log.debug("LAB match: L object %.1f+-%.1f, ring %.1f+-%.1f -> mean %.1f, gain %.2f",
               mu_o, sd_o, mu_r, sd_r, mu_t, k)  # fmt: skip
     out = color_lin.copy()
-    out[has] = srgb_to_linear(np.clip(cv2.cvtColor(lab, cv2.COLOR_Lab2RGB)[:, 0], 0.0, 1.0))
+    out[has] = np.clip(cv2.cvtColor(lab, cv2.COLOR_Lab2LRGB)[:, 0], 0.0, 1.0)
     return out
 
 
@@ -313,15 +315,20 @@ def composite(
     out = frame.copy()
     if not changed.any():
         return out
-    real = frame[v0:v1, u0:u1]
-    bg = SRGB8_TO_LINEAR[real[changed]]  # (k, 3) linear
-    res = layer[changed, :3] + (1.0 - a[changed, None]) * bg * (1.0 - sh[changed, None])
+    # the changed pixels gathered once by their flat index (each boolean index of the
+    # ROI's arrays was a gather of its own)
+    vs, us = np.nonzero(changed)
+    flat = vs * changed.shape[1] + us
+    a_c = a.reshape(-1)[flat]
+    keep = (1.0 - a_c) * (1.0 - sh.reshape(-1)[flat])  # (k,) of the real pixel's light
+    res = SRGB8_TO_LINEAR[frame[v0:v1, u0:u1][vs, us]]  # (k, 3) linear
+    res *= keep[:, None]
+    res += layer.reshape(-1, 4)[flat, :3]
     enc8 = linear_to_srgb(res).astype(np.float64) * 255.0
     profile = frame_noise(frame, render) if match_noise else None
     if profile is not None:
         rng = np.random.default_rng([int(noise_seed) & (2**63 - 1), u0, v0, 0x5E45])
-        enc8 = add_noise(enc8, noise_weight(a[changed]), profile, rng)
+        enc8 = add_noise(enc8, noise_weight(a_c), profile, rng)
     enc = np.clip(np.round(enc8), 0, 255).astype(np.uint8)
-    roi_out = out[v0:v1, u0:u1]
-    roi_out[changed] = enc
+    out[v0 + vs, u0 + us] = enc
     return out
