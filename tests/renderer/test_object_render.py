@@ -300,3 +300,55 @@ def test_gathered_shadow_filter_equals_texel_fetches(cams, renderers):
         assert ra.roi == rb.roi and ra.shadow.max() > 0.5
         assert np.array_equal(ra.shadow, rb.shadow)
         assert np.array_equal(ra.color, rb.color)
+
+
+def test_long_triangles_take_the_exact_depth(cams, renderers, monkeypatch):
+    """The object's depth is interpolated from its vertices (llvmpipe then tests depth
+    before shading) only where that is exact enough. A 6 m slab of two triangles 1 cm
+    above a ground proxy at 12-18 m is wholly visible (exact per-fragment depth), 1 mm
+    below it wholly hidden; forced onto its vertices' depth, the ground hides it (the log
+    of the depth is convex along a screen line: interpolated, the slab reads farther).
+    A sphere of short edges keeps the vertex depth, with the exact depth's coverage."""
+    import renderer.object_render as ormod
+
+    name = "rgb_center"
+    rr = renderer(renderers, cams, name)
+    T_wb = vehicle_pose()
+    T_wo = T_wb @ make_T(np.eye(3), (12.0, -0.5, 0.0))
+    quad = np.array([[-20, -20, 0], [20, -20, 0], [20, 20, 0], [-20, 20, 0.0]])
+    ground = _plane(transform_points(T_wo, quad))  # the object frame's z = 0
+    no_sun = Lighting(sun_intensity=0.0)
+
+    def slab(h: float) -> ObjectMesh:
+        v = np.array([[0.0, 0, h], [6.0, 0, h], [6.0, 1.0, h], [0.0, 1.0, h]])
+        return ObjectMesh(
+            v, np.array([[0, 1, 2], [0, 2, 3]]), np.full((4, 3), 0.4, np.float32),
+            np.ones(4, np.float32),
+        )  # fmt: skip
+
+    above, below = slab(0.01), slab(-0.001)
+    alone = rr.render(above, T_wo, T_wb, light=no_sun).alpha.sum()
+    assert alone > 1000
+    assert rr.render(above, T_wo, T_wb, proxies=ground, light=no_sun).alpha.sum() > 0.999 * alone
+    assert rr.render(below, T_wo, T_wb, proxies=ground, light=no_sun).alpha.sum() == 0.0
+    assert any("EXACT_DEPTH" in d for d in rr._obj_progs)
+    monkeypatch.setattr(ormod, "VERTEX_DEPTH_TOL", np.inf)
+    forced = rr.render(above, T_wo, T_wb, proxies=ground, light=no_sun).alpha.sum()
+    assert forced < 0.5 * alone
+
+    ball = sphere(0.5)
+    monkeypatch.setattr(ormod, "VERTEX_DEPTH_TOL", 0.1 * ormod.PROXY_DEPTH_BIAS)
+    variants: list[tuple[str, ...]] = []
+    real_variant = rr._object_variant
+
+    def recorded(up, defines):
+        variants.append(defines)
+        return real_variant(up, defines)
+
+    monkeypatch.setattr(rr, "_object_variant", recorded)
+    r = rr.render(ball, T_wo, T_wb, proxies=ground, light=no_sun)
+    assert variants and not any("EXACT_DEPTH" in d for d in variants)
+    monkeypatch.setattr(ormod, "VERTEX_DEPTH_TOL", 0.0)  # always exact
+    exact = rr.render(ball, T_wo, T_wb, proxies=ground, light=no_sun)
+    assert r.roi == exact.roi and r.visible_fraction > 0.99
+    np.testing.assert_allclose(r.alpha, exact.alpha, atol=1e-6)
