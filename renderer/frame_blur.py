@@ -23,9 +23,10 @@ independent of the edge's contrast and direction. Per window (luma, 8-bit):
 1. candidate pixels: Canny (non-maximum suppression and hysteresis) on the
    derivative-of-Gaussian gradient itself, so its thresholds are in the units they are
    computed in: the high one ``CANNY_HIGH`` times the gradient's noise std (from the
-   window's pixel noise, Immerkaer's estimate) and at least the peak of a
-   ``MIN_CONTRAST`` step blurred to ``MAX_SIGMA_PX``; outside the excluded pixels (the
-   object grown by ``EXCLUDE_GROW_PX``) and away from the window's border; of those
+   window's pixel noise, Immerkaer's estimate over at most ``NOISE_MAX_PIXELS``) and at
+   least the peak of a ``MIN_CONTRAST`` step blurred to ``MAX_SIGMA_PX``; outside the
+   excluded pixels (the object grown by ``EXCLUDE_GROW_PX``) and away from the window's
+   border; of those
    across the motion (step 4, tested first), at most ``MAX_CANDIDATES`` (an even stride
    through them: a cap taken before the direction test left a large textured window
    with too few edges across a vertical motion, and the lens model's blur instead);
@@ -66,6 +67,8 @@ EXCLUDE_GROW_PX = 6
 MIN_EDGE_PIXELS = 40
 MAX_SIGMA_PX = 3.0
 MAX_CANDIDATES = 4000
+#: Pixels the window's noise level (the Canny thresholds) is read from at most.
+NOISE_MAX_PIXELS = 300_000
 STEP_HALF_PX = 6.0
 STRAIGHT_PX = 3.0
 STRAIGHT_TOL_PX = 0.5
@@ -111,7 +114,7 @@ def candidate_pixels(
 ) -> NDArray[np.bool_]:
     """Edge candidates of a luma window (module docstring, step 1): Canny on ``gx``, ``gy``
     (the window's gradient at ``DERIV_SIGMA_PX``)."""
-    pixel_noise = robust_sigma(gray)
+    pixel_noise = robust_sigma(gray, max_pixels=NOISE_MAX_PIXELS)
     pixel_noise = pixel_noise if np.isfinite(pixel_noise) else 0.0
     noise = pixel_noise * _gradient_noise_gain(DERIV_SIGMA_PX)
     weakest = MIN_CONTRAST / np.sqrt(2.0 * np.pi * (MAX_SIGMA_PX**2 + DERIV_SIGMA_PX**2))

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from geometry.transforms import pose_to_T
-from renderer.composite import blur_sigma_px, composite
+from renderer.composite import blur_sigma_px, composite, composite_into
 from renderer.lighting import (
     Lighting,
     estimate_lighting,
@@ -71,6 +71,21 @@ def test_outside_roi_untouched_and_none_returns_input():
     empty = ObjectRender(None, np.zeros((0, 0, 3), np.float32), z, z, z, 0.0,
                          np.full(2, np.nan), (np.nan,) * 4, 10.0)  # fmt: skip
     assert composite(img, empty) is img
+
+
+def test_in_place_through_a_bgr_view_equals_the_copy():
+    img = frame(90)
+    r = square_render(shadow=True)
+    want = composite(img, r, speed_mps=20.0, noise_seed=3)
+    bgr = np.ascontiguousarray(img[..., ::-1])
+    assert composite_into(bgr[..., ::-1], r, speed_mps=20.0, noise_seed=3)
+    assert np.array_equal(bgr[..., ::-1], want)
+    # an object that changes no byte (fully transparent) reports so and leaves the frame
+    clear = square_render()
+    clear.alpha[:] = 0.0
+    before = bgr.copy()
+    assert not composite_into(bgr[..., ::-1], clear)
+    assert np.array_equal(bgr, before)
 
 
 def test_opaque_object_without_effects_is_exact():

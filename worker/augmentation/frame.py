@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 
 from geometry.camera import CameraModel
 from geometry.transforms import invert_T, transform_points
-from renderer.composite import composite
+from renderer.composite import composite, composite_into
 from renderer.lidar_cast import (
     LidarCastResult,
     LidarNoise,
@@ -210,8 +210,8 @@ def composite_file(
     rows only (:func:`~worker.osdar.png_splice.decode_rows`; or taken whole from the
     plan, which decoded the first frame for the lighting: :func:`.plan.take_decoded`),
     and encoded from it: only a window around each ROI (``COMPOSITE_MARGIN_PX`` wider than the
-    LAB-matching ring, so the result equals a full-frame composite) is converted to RGB
-    and composited. Images that are not 8-bit 3-channel take the general
+    LAB-matching ring, so the result equals a full-frame composite) is composited, in
+    place through the image's RGB view. Images that are not 8-bit 3-channel take the general
     :func:`read_png` path.
     """
 
@@ -252,11 +252,9 @@ def composite_file(
     for render, options in layers:
         u0, v0, u1, v1 = render.roi
         a0, b0, a1, b1 = max(u0 - m, 0), max(v0 - m, 0), min(u1 + m, W), min(v1 + m, H)
-        sub = np.ascontiguousarray(img[b0:b1, a0:a1, ::-1])
         shifted = dataclasses.replace(render, roi=(u0 - a0, v0 - b0, u1 - a0, v1 - b0))
-        out = composite(sub, shifted, **options)
-        if out is not sub and not np.array_equal(out, sub):
-            img[b0:b1, a0:a1] = out[..., ::-1]
+        # blended into the decoded image itself, through its RGB view
+        if composite_into(img[b0:b1, a0:a1, ::-1], shifted, **options):
             rows = (min(rows[0], b0), max(rows[1], b1))
     changed = rows[0] < rows[1]
     t["composite"] += time.perf_counter() - tic
