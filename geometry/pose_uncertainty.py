@@ -28,7 +28,7 @@ from scipy.optimize import brentq
 from scipy.sparse import csc_matrix, diags
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2, norm
+from scipy.special import ndtr, ndtri
 
 F64 = NDArray[np.float64]
 
@@ -142,26 +142,44 @@ def _perturbed(T: F64, d: F64) -> F64:
 
 
 def anchor_pixel_jacobian(
-    project: Callable[[F64, F64], F64], T_r: F64, T_i: F64, p_obj: F64
+    project: Callable[[F64, F64], F64],
+    T_r: F64,
+    T_i: F64,
+    p_obj: F64,
+    project_many: Callable[[F64, F64], F64] | None = None,
 ) -> F64:
     """(2, 12) derivative of the anchor's pixel in frame i with respect to
     [dtheta_r, dp_r, dtheta_i, dp_i]: the anchor is held in frame r's map
     (``q = T_r^-1 p_obj``) and seen with pose ``T_i``. ``project(p_world, T_world_base)``
-    returns its (2,) pixel."""
+    returns its (2,) pixel; ``project_many(P_world (n, 3), T_world_base)`` their (n, 2)
+    pixels, when given, takes all 13 in one call (a perturbed pose ``T'`` seen as the
+    point ``T_i T'^-1 p_obj`` from ``T_i``)."""
     q = np.linalg.solve(T_r, np.append(p_obj, 1.0))
-    base = project(p_obj, T_i)
-    J = np.zeros((2, 12))
     steps = np.array([STEP_ROT] * 3 + [STEP_POS] * 3)
+    p_world = [np.asarray(p_obj, np.float64)]
     for c in range(12):
         d = np.zeros(6)
         d[c % 6] = steps[c % 6]
         if c < 6:
-            p = (_perturbed(T_r, d) @ q)[:3]
-            uv = project(p, T_i)
-        else:
-            uv = project(p_obj, _perturbed(T_i, d))
-        J[:, c] = (uv - base) / steps[c % 6]
+            p_world.append((_perturbed(T_r, d) @ q)[:3])
+        elif project_many is not None:
+            p_world.append((T_i @ np.linalg.solve(_perturbed(T_i, d), np.append(p_obj, 1.0)))[:3])
+    if project_many is not None:
+        uv = np.asarray(project_many(np.stack(p_world), T_i), np.float64)
+    else:
+        uv = np.stack(
+            [project(p, T_i) for p in p_world]
+            + [project(p_obj, _perturbed(T_i, _unit(c, steps))) for c in range(6)]
+        )
+    J: F64 = ((uv[1:] - uv[0]) / np.concatenate([steps, steps])[:, None]).T
     return J
+
+
+def _unit(c: int, steps: F64) -> F64:
+    """(6,) the perturbation of coordinate ``c`` by its step."""
+    d = np.zeros(6)
+    d[c] = steps[c]
+    return d
 
 
 def anchor_bound_px(J: F64, cov: F64, coverage: float = 0.9) -> float:
@@ -176,15 +194,19 @@ def anchor_bound_px(J: F64, cov: F64, coverage: float = 0.9) -> float:
 
 #: Gauss-Legendre nodes of the radius distribution's integral (exact to ~1e-10 here).
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(48)
+_GL_SIN, _GL_COS = np.sin(0.5 * np.pi * _GL_X), np.cos(0.5 * np.pi * _GL_X)  # [-pi/2, pi/2]
+_SQRT_2PI = float(np.sqrt(2.0 * np.pi))
 
 
 def _radius_cdf(r: float, s1: float, s2: float) -> float:
     """P(||e|| <= r) for e ~ N(0, diag(s1^2, s2^2)), s1 >= s2 > 0: the integral over the
     major axis' coordinate x = r sin(t) of its density times P(|e2| <= r cos(t)) (smooth
     in t up to the ends, where the integrand in x has a kink)."""
-    t = 0.5 * np.pi * _GL_X  # nodes on [-pi/2, pi/2]
-    x, y = r * np.sin(t), r * np.cos(t)
-    f = norm.pdf(x / s1) / s1 * (2.0 * norm.cdf(y / s2) - 1.0) * y
+    # the standard normal's density and distribution function from numpy and
+    # scipy.special directly: scipy.stats' checks took 0.4 ms a call, a fifth of a
+    # sequence's placement bounds
+    x, y = r * _GL_SIN, r * _GL_COS
+    f = np.exp(-0.5 * (x / s1) ** 2) / (_SQRT_2PI * s1) * (2.0 * ndtr(y / s2) - 1.0) * y
     return float(0.5 * np.pi * np.sum(_GL_W * f))
 
 
@@ -200,8 +222,8 @@ def gaussian_radius_quantile(lam_major: float, lam_minor: float, coverage: float
     if lam1 <= 0.0:
         return 0.0
     s1 = float(np.sqrt(lam1))
-    lo = s1 * float(np.sqrt(chi2.ppf(coverage, 1)))  # the major axis' error alone
-    hi = s1 * float(np.sqrt(chi2.ppf(coverage, 2)))  # a circle of the major axis' sigma
+    lo = s1 * float(ndtri(0.5 * (1.0 + coverage)))  # the major axis' error alone
+    hi = s1 * float(np.sqrt(-2.0 * np.log1p(-coverage)))  # a circle of the major axis' sigma
     s2 = float(np.sqrt(lam2))
     if s2 < 1e-6 * s1:
         return lo

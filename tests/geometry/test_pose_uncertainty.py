@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from geometry.pose_uncertainty import (
     PoseInformation,
@@ -99,3 +100,19 @@ def test_radius_quantile_matches_the_closed_forms_and_sampling() -> None:
         d = np.sqrt(lam1 * z[:, 0] ** 2 + lam2 * z[:, 1] ** 2)
         got = gaussian_radius_quantile(lam1, lam2, q)
         assert np.mean(d <= got) == pytest.approx(q, abs=0.002), (lam1, lam2, q)
+
+
+def test_pixel_jacobian_in_one_batched_projection_matches_the_loop() -> None:
+    """The 13 projections taken in one call (a perturbed viewing pose as the point it
+    puts in the unperturbed one's view) give the loop's Jacobian."""
+    T_r, T_i = _pose(0.0), _pose(12.0)
+    T_i[:3, :3] = Rotation.from_euler("zyx", [3.0, -1.0, 0.5], degrees=True).as_matrix()
+    p_obj = np.array([45.0, -2.0, 1.2])
+
+    def many(P: np.ndarray, T: np.ndarray) -> np.ndarray:
+        return np.stack([_project(p, T) for p in P])
+
+    loop = anchor_pixel_jacobian(_project, T_r, T_i, p_obj)
+    batched = anchor_pixel_jacobian(_project, T_r, T_i, p_obj, many)
+    np.testing.assert_allclose(batched, loop, rtol=1e-5, atol=1e-6 * np.abs(loop).max())
+    assert np.abs(loop[:, 6:]).max() > 1.0  # the viewing pose's columns are not empty

@@ -82,10 +82,13 @@ def placement_bounds(
                 uv, _ = cam.project_world(p[None], T)
                 return uv[0]
 
+            def project_many(p: F64, T: F64, cam: CameraModel = cam) -> F64:
+                return cam.project_world(p, T)[0]
+
             uv = project(p_obj, T_i)
             if not (np.all(np.isfinite(uv)) and cam.in_image(uv[None])[0]):
                 continue
-            J = anchor_pixel_jacobian(project, T_r, T_i, p_obj)
+            J = anchor_pixel_jacobian(project, T_r, T_i, p_obj, project_many)
             per[name] = anchor_bound_px(J, cov, COVERAGE)
         if per:
             out[int(f)] = per

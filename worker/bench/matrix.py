@@ -275,6 +275,9 @@ def _anchor_in_camera(
         uv, _ = cam.project_world(p[None], T)
         return uv[0]
 
+    def project_many(p: F64, T: F64) -> F64:
+        return cam.project_world(p, T)[0]
+
     ok_t = np.isfinite(t)
     T_est = np.full((len(t), 4, 4), np.nan)
     T_tru = np.full((len(t), 4, 4), np.nan)
@@ -289,7 +292,7 @@ def _anchor_in_camera(
             continue
         e[k] = uv_e - uv_t
         if info is not None:
-            J = anchor_pixel_jacobian(project, T_ref, T_est[k], p_est)
+            J = anchor_pixel_jacobian(project, T_ref, T_est[k], p_est, project_many)
             bound[k] = anchor_bound_px(J, info.covariance(0, int(k)))
     err = np.linalg.norm(e, axis=1)
     change = np.linalg.norm(np.diff(e, axis=0), axis=1)
