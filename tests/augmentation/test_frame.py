@@ -238,3 +238,34 @@ def test_frame_order_gives_this_process_the_first_frame() -> None:
     assert frame_order(frames, 1) == [11, 12, 10, *range(13, 20)]
     assert sorted(frame_order(frames, 2)) == frames and frame_order(frames, 2)[4] == 10
     assert frame_order(frames[:3], 2) == frames[:3]
+
+
+def test_key_frames_measured_after_the_plan_give_the_same_clouds(
+    noisy_run, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A plan made without the noise (a pool's: its parent measures the key frames while
+    the children start) writes the clouds and records the eager plan does; a process
+    that reads the plan's record takes the estimates the first one shared, without
+    measuring them again."""
+    import worker.augmentation.lidar_noise as ln
+    from worker.augmentation.records import dump_plan, load_plan
+
+    seq, plan, chunk, _, out = noisy_run
+    lazy = plan_augmentation(seq, plan.spec, truth_prepared(seq), measure_noise=False)
+    assert lazy.lidar_noise == {} and sorted(lazy.lidar_noise_spheres) == sorted(plan.lidar_noise)
+    lazy.lidar_noise_dir = str(tmp_path / "shared")
+    (tmp_path / "shared").mkdir()
+    record = dump_plan(lazy)  # as the pool's children get it: before anything is measured
+    assert ln.measure_pending_noise(lazy) == len(plan.lidar_noise)
+    assert len(list((tmp_path / "shared").glob("*.json"))) == len(plan.lidar_noise)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("measured again although the estimate was shared")
+
+    monkeypatch.setattr(ln, "measure_key_noise", refuse)
+    child = load_plan(record)
+    again = augment_frames(child, child.frames, tmp_path / "again")
+    for a, b in zip(again.frames, chunk.frames, strict=True):
+        uri = plan.uris[a.frame_idx]["lidar"].lstrip("/")
+        assert (tmp_path / "again" / uri).read_bytes() == (out / uri).read_bytes()
+        assert json.dumps(a.lidar_noise) == json.dumps(b.lidar_noise)  # NaN != NaN

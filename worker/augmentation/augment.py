@@ -117,11 +117,16 @@ def augment(
             tic = time.perf_counter()
             prepared = _prepare(seq_folder, spec, cache_dir)
             extra["prepare"] = time.perf_counter() - tic
-        plan = plan_augmentation(seq_folder, spec, prepared)
+        # with a pool, the lidar noise's key frames are measured by this process while
+        # the children start on the first frames (run_frames), not before them
+        plan = plan_augmentation(seq_folder, spec, prepared, measure_noise=pool is None)
         if prepared.calibration is not None:
             plan.info["calibration"] = prepared.calibration.summary()
         shutil.rmtree(scratch, ignore_errors=True)
         scratch.mkdir(parents=True)
+        if plan.lidar_noise_spheres:
+            (scratch / ".lidar_noise").mkdir()
+            plan.lidar_noise_dir = str(scratch / ".lidar_noise")
         tic = time.perf_counter()
         chunks = run_frames(plan, scratch, pool, progress, evaluate=evaluate)
         extra["frames_total_wall"] = time.perf_counter() - tic

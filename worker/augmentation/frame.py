@@ -48,7 +48,7 @@ from worker.augmentation.annotations import (
     cuboid_in_lidar,
     mask_outline,
 )
-from worker.augmentation.lidar_noise import bounding_sphere
+from worker.augmentation.lidar_noise import bounding_sphere, key_noise
 from worker.augmentation.plan import (
     NEAR_PLANE_M,
     Plan,
@@ -653,7 +653,7 @@ def _lidar_frame(
     meshes = [o.mesh(stream, frame, full=True) for o in plan.objects]
     T_base_objs = [T_base_world @ o.pose(stream, frame) for o in plan.objects]
     key = plan.lidar_noise_keys.get(frame)
-    noise = plan.lidar_noise.get(key) if key is not None else None
+    noise = key_noise(plan, key) if key is not None else None
     noise_out.update({s: dataclasses.asdict(v) for s, v in (noise or {}).items()})
     if len(meshes) == 1:
         new, idx, n_cand = cast_frame_lidar(

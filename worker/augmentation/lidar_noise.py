@@ -8,7 +8,12 @@ only (:func:`noise_key_frames`): the first frame of the range, then the first fr
 some object's bounding-sphere centre has moved more than ``REMEASURE_M`` (half the shell)
 in the lidar's base frame since the last key frame, i.e. once half of the shell's points
 have changed at most. Every frame uses the estimate of its key frame
-(:func:`plan_lidar_noise`); the noise's draw stays per frame (its seed is the frame).
+(:func:`noise_key_spheres`, :func:`measure_key_noise`); the noise's draw stays per frame
+(its seed is the frame). A pool's parent plans without measuring them and measures them
+while its children start on the first frames (their camera images come before their
+clouds): a frame reads its key's estimate from the plan, from the file the parent shared
+(:func:`key_noise`), or measures it itself; the estimate depends on the key frame alone,
+so each frame gets the same wherever it is measured.
 
 Measured on 16 full-density frames with the object in every frame
 (``scripts/bench_augment.py``): the estimate took 150 ms a frame, a tenth of a frame's
@@ -17,6 +22,8 @@ worker time; at a key frame every 5 m of relative motion it is a few per sequenc
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -29,11 +36,12 @@ from geometry.transforms import invert_T, transform_points
 from renderer.lidar_cast import LidarNoise
 from renderer.lidar_noise import NOISE_SHELL_M, measure_lidar_noise
 from renderer.mesh import ObjectMesh
+from worker.osdar.errors import atomic_write_bytes
 from worker.osdar.pcd import read_pcd
 from worker.osdar.sequence import uri_to_path
 
 if TYPE_CHECKING:  # plan.py imports this module
-    from worker.augmentation.plan import PlannedObject
+    from worker.augmentation.plan import Plan, PlannedObject
 
 log = logging.getLogger(__name__)
 
@@ -107,26 +115,71 @@ def noise_key_frames(
     return keys
 
 
-def plan_lidar_noise(
-    seq_folder: str | Path,
+def noise_key_spheres(
     uris: Mapping[int, Mapping[str, str]],
     stream: str,
     frames: Sequence[int],
     objects: Sequence[PlannedObject],
     T_world_base: Mapping[int, F64],
-    origins: Mapping[int, F64] | F64,
-) -> tuple[dict[int, int], dict[int, dict[int, LidarNoise]]]:
-    """(frame -> key frame, key frame -> {sensor_index: LidarNoise}) for the frames with a
-    cloud of ``stream``; T_world_base : frame -> (4, 4) the pose at the lidar timestamp."""
+) -> tuple[dict[int, int], dict[int, F64]]:
+    """(frame -> key frame, key frame -> (k, 4) the k objects' bounding spheres: centre
+    (3,) and radius, base frame) for the frames with a cloud of ``stream``;
+    T_world_base : frame -> (4, 4) the pose at the lidar timestamp."""
     spheres = {
         f: object_spheres(objects, T_world_base[f], stream, f)
         for f in frames
         if stream in uris.get(f, {})
     }
     keys = noise_key_frames({f: np.stack([c for c, _ in s]) for f, s in spheres.items()})
-    noise: dict[int, dict[int, LidarNoise]] = {}
+    at_keys = {}
     for k in sorted(set(keys.values())):
-        cloud = read_pcd(uri_to_path(Path(seq_folder), uris[k][stream]))
-        noise[k] = lidar_noise_near(cloud.fields, origins, spheres[k])
-    log.info("lidar noise measured at %d key frame(s) of %d", len(noise), len(keys))
-    return keys, noise
+        at_keys[k] = np.array([[*c, r] for c, r in spheres[k]], np.float64)
+    return keys, at_keys
+
+
+def measure_key_noise(
+    seq_folder: str | Path, uri: str, origins: Mapping[int, F64] | F64, spheres: F64
+) -> dict[int, LidarNoise]:
+    """{sensor_index: LidarNoise} of the cloud at ``uri`` around ``spheres`` (k, 4) (centre,
+    radius; base frame): :func:`lidar_noise_near`."""
+    cloud = read_pcd(uri_to_path(Path(seq_folder), uri))
+    return lidar_noise_near(cloud.fields, origins, [(sp[:3], float(sp[3])) for sp in spheres])
+
+
+def _noise_file(plan: Plan, key: int) -> Path | None:
+    return Path(plan.lidar_noise_dir) / f"key_{key}.json" if plan.lidar_noise_dir else None
+
+
+def key_noise(plan: Plan, key: int) -> dict[int, LidarNoise] | None:
+    """The lidar noise of key frame ``key``: the plan's, else (a plan made with
+    ``measure_noise=False``) the estimate another process shared in
+    ``plan.lidar_noise_dir``, else measured here (and shared there). The estimate is a
+    function of the key frame's cloud and spheres alone: whichever process measures it,
+    every frame gets the same. None: the plan has no noise for that key."""
+    got = plan.lidar_noise.get(key)
+    if got is not None:
+        return got
+    spheres = plan.lidar_noise_spheres.get(key)
+    if spheres is None or plan.lidar_stream is None or plan.lidar_origins is None:
+        return None
+    path = _noise_file(plan, key)
+    if path is not None and path.is_file():
+        got = {int(s): LidarNoise(**v) for s, v in json.loads(path.read_text()).items()}
+    else:
+        got = measure_key_noise(
+            plan.seq_folder, plan.uris[key][plan.lidar_stream], plan.lidar_origins, spheres
+        )
+        if path is not None:
+            text = json.dumps({str(s): dataclasses.asdict(v) for s, v in got.items()})
+            atomic_write_bytes(path, text.encode())
+    plan.lidar_noise[key] = got
+    return got
+
+
+def measure_pending_noise(plan: Plan) -> int:
+    """Measure (and share) every key frame's noise the plan does not hold yet; returns how
+    many were measured or read."""
+    pending = [k for k in sorted(plan.lidar_noise_spheres) if k not in plan.lidar_noise]
+    for k in pending:
+        key_noise(plan, k)
+    return len(pending)

@@ -30,7 +30,7 @@ from renderer.lighting import Lighting, estimate_lighting, sun_dir_enu
 from renderer.mesh import ObjectMesh, ProxyMesh
 from worker.augmentation.confidence import placement_bounds
 from worker.augmentation.gauge import GaugeLabel, gauge_labels, gauge_labels_moving
-from worker.augmentation.lidar_noise import plan_lidar_noise
+from worker.augmentation.lidar_noise import measure_key_noise, noise_key_spheres
 from worker.augmentation.motion import MovingPoses, moving_poses
 from worker.augmentation.placement import (
     RAIL_HEIGHT_ABOVE_BED,
@@ -139,7 +139,11 @@ class Plan:
     lidar_origins : {sensor_index: (3,)} or (3,) base-frame ray origins, None: no lidar.
     lidar_noise_keys : frame -> the key frame whose lidar noise it uses; lidar_noise : key
     frame -> {sensor_index: LidarNoise} (both empty when the spec's render.lidar_noise is
-    off or there is no lidar: :mod:`.lidar_noise`).
+    off or there is no lidar: :mod:`.lidar_noise`); lidar_noise_spheres : key frame ->
+    (k, 4) the objects' bounding spheres (centre, radius; base frame) its estimate is
+    measured around, for the keys measured after the plan (:func:`.lidar_noise.key_noise`:
+    the plan is then made with ``measure_noise=False``); lidar_noise_dir : a folder where
+    those estimates are shared between processes ("" for none).
 
     ``T_world_obj``, ``obj_full``, ``obj_render``, ``obj_class``, ``placement``,
     ``gauge`` and ``placement_bounds`` are the first object's (single-object readers).
@@ -162,6 +166,8 @@ class Plan:
     labels_name: str
     lidar_noise_keys: dict[int, int] = field(default_factory=dict)
     lidar_noise: dict[int, dict[int, LidarNoise]] = field(default_factory=dict)
+    lidar_noise_spheres: dict[int, F64] = field(default_factory=dict)
+    lidar_noise_dir: str = ""
     timings: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
@@ -523,6 +529,7 @@ class _Parts(NamedTuple):
     offsets: dict[str, tuple[float, float]]
     noise_keys: dict[int, int]
     noise: dict[int, dict[int, LidarNoise]]
+    noise_spheres: dict[int, F64]
 
 
 def _timed_lights(
@@ -539,9 +546,11 @@ def _plan_objects(
     view: _Opened,
     warnings: list[str],
     timings: dict[str, float],
+    measure_noise: bool = True,
 ) -> _Parts:
     """The objects loaded, placed and planned, the proxies, the lidar origins, the render
-    offsets and the lidar noise at key frames (the plan's parts that need the objects)."""
+    offsets and the lidar noise at key frames (the plan's parts that need the objects;
+    without ``measure_noise`` the key frames and their spheres only)."""
     tic = time.perf_counter()
     objs = []
     for i, so in enumerate(spec.scene_objects):
@@ -568,18 +577,28 @@ def _plan_objects(
     tic = time.perf_counter()
     noise_keys: dict[int, int] = {}
     noise: dict[int, dict[int, LidarNoise]] = {}
+    spheres: dict[int, F64] = {}
     if origins is not None and view.lidar_stream is not None and spec.render.lidar_noise:
-        noise_keys, noise = plan_lidar_noise(
-            seq_folder, view.uris, view.lidar_stream, view.frames, planned,
-            view.poses[view.lidar_stream], origins,
-        )  # fmt: skip
+        noise_keys, spheres = noise_key_spheres(
+            view.uris, view.lidar_stream, view.frames, planned, view.poses[view.lidar_stream]
+        )
+        if measure_noise:
+            noise = {
+                k: measure_key_noise(seq_folder, view.uris[k][view.lidar_stream], origins, sp)
+                for k, sp in spheres.items()
+            }
+            spheres = {}
     timings["lidar_noise"] = time.perf_counter() - tic
-    return _Parts(planned, proxies, origins, offsets, noise_keys, noise)
+    return _Parts(planned, proxies, origins, offsets, noise_keys, noise, spheres)
 
 
-def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) -> Plan:
+def plan_augmentation(
+    seq_folder: str | Path, spec: AugmentSpec, prepared: Any, *, measure_noise: bool = True
+) -> Plan:
     """Everything frame-independent (module docstring). Raises AugmentError /
-    PlacementError with a message saying what and where."""
+    PlacementError with a message saying what and where. ``measure_noise=False`` leaves
+    the lidar noise's key frames to be measured later (:func:`.lidar_noise.key_noise`:
+    by a pool's parent while its children start on the first frames)."""
 
     timings: dict[str, float] = {}
     warnings: list[str] = []
@@ -594,8 +613,8 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
     light_warnings: list[str] = []
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="plan-lighting") as ex:
         lighting = ex.submit(_timed_lights, spec, prepared, seq, view, light_warnings)
-        planned, proxies, origins, offsets, noise_keys, noise = _plan_objects(
-            seq_folder, spec, prepared, view, warnings, timings
+        planned, proxies, origins, offsets, noise_keys, noise, spheres = _plan_objects(
+            seq_folder, spec, prepared, view, warnings, timings, measure_noise
         )
         lights, timings["lighting"] = lighting.result()
     warnings += light_warnings
@@ -626,6 +645,7 @@ def plan_augmentation(seq_folder: str | Path, spec: AugmentSpec, prepared: Any) 
         labels_name=seq.labels_path.name,
         lidar_noise_keys=noise_keys,
         lidar_noise=noise,
+        lidar_noise_spheres=spheres,
         timings=timings,
         warnings=warnings,
         info={

@@ -11,6 +11,7 @@ import hashlib
 import logging
 import multiprocessing as mp
 import os
+import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from pathlib import Path
@@ -24,6 +25,7 @@ from geometry import camera as cam_mod
 from geometry.camera import CameraModel
 from osdar_platform.settings import get_settings
 from worker.augmentation.frame import ChunkResult, augment_frames, camera_renderer
+from worker.augmentation.lidar_noise import measure_pending_noise
 from worker.augmentation.plan import Plan
 from worker.augmentation.records import dump_chunk, dump_plan, load_chunk, read_plan
 from worker.evaluation.object_error import measure_chunk
@@ -183,12 +185,20 @@ def run_frames(
     plan_file = scratch / ".plan.npz"
     plan_file.write_bytes(dump_plan(plan))
     futures: set[Future] = set()
+    noise_done = not plan.lidar_noise_spheres
     while pending or futures:
         while pending and len(futures) < 2 * n_children:
             f = pending.pop()
             futures.add(
                 pool.submit(_augment_frames_from_file, str(plan_file), [f], str(scratch), evaluate)
             )
+        if not noise_done:
+            # the key frames the plan left: measured (and shared) here while the children
+            # render their first frames' images, which come before the clouds
+            tic = time.perf_counter()
+            measure_pending_noise(plan)
+            plan.timings["lidar_noise_parent"] = time.perf_counter() - tic
+            noise_done = True
         if pending:
             chunks.append(_augment(plan, [pending.pop()], scratch, evaluate))
             report()

@@ -42,7 +42,7 @@ from worker.augmentation.spec import AugmentSpec
 
 #: Version of the record layout; a record of another version is refused. Bumped whenever
 #: a stored type's fields change.
-VERSION = 4
+VERSION = 5
 PLAN_FORMAT = "osdar-ar.plan"
 CHUNK_FORMAT = "osdar-ar.chunk"
 _HEADER = "__header__"
