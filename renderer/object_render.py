@@ -27,7 +27,9 @@ Per call, for the object at ``T_world_obj`` seen from the vehicle pose ``T_world
    ``EXACT_DEPTH`` shader variant). Built-in obstacles have edges of at most 12 cm:
    2e-5 of the depth at 10 m.
 
-   - shadow map: the object's depth seen from the sun (orthographic, object frame);
+   - shadow map: the object's depth seen from the sun (orthographic, object frame; its
+     size a power of two from the camera's footprint at the object); drawn once per
+     mesh, sun direction and size: a static object seen again reuses it;
    - object pass: lit colour (:mod:`renderer.lighting`'s model, self-shadowed), coverage,
      optical z;
    - proxy pass (depth only for the image): proxies drawn behind the object's depth
@@ -690,6 +692,8 @@ class ObjectRenderer:
         self._sms: dict[
             tuple[int, int], tuple[moderngl.Texture, moderngl.Renderbuffer, moderngl.Framebuffer]
         ] = {}
+        #: by size, what its map holds: the object's upload and (sun, up) in its frame
+        self._sm_drawn: dict[tuple[int, int], tuple[_Upload, tuple[bytes, bytes]]] = {}
         self._obj_cache: list[_Upload] = []
         self._proxy_cache: list[_Upload] = []
         # Pixel-centre extent of the pinhole render in normalised undistorted coordinates.
@@ -747,6 +751,7 @@ class ObjectRenderer:
         size = (int(2 ** np.ceil(np.log2(nx))), int(2 ** np.ceil(np.log2(ny))))
         got = self._sms.pop(size, None)
         if got is None:
+            self._sm_drawn.pop(size, None)
             tex = self.ctx.texture(size, 1, dtype="f4")
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
             tex.repeat_x = tex.repeat_y = False  # clamp to edge, as the filter clamps
@@ -755,7 +760,9 @@ class ObjectRenderer:
             got = (tex, rb, fbo)
         self._sms[size] = got
         while len(self._sms) > _SHADOW_MAPS_KEPT:
-            old = self._sms.pop(next(iter(self._sms)))
+            evicted = next(iter(self._sms))
+            self._sm_drawn.pop(evicted, None)
+            old = self._sms.pop(evicted)
             for o in old[::-1]:
                 o.release()
         return got[0], got[2]
@@ -857,6 +864,7 @@ class ObjectRenderer:
             for o in sm[::-1]:
                 o.release()
         self._sms.clear()
+        self._sm_drawn.clear()
         for p in (*self._obj_progs.values(), self._prog_proxy, self._prog_sm):
             p.release()
         self._obj_progs.clear()
@@ -1213,15 +1221,23 @@ class ObjectRenderer:
         M[1, :3] = b / half[1]
         M[2, :3] = w
         M[:3, 3] = -(np.stack([a / half[0], b / half[1], w]) @ c)
+        up = self._upload_object(obj)
+        # the map is a function of the mesh, the sun and up in the object frame and its
+        # size alone (not of the distance, which only picks the size): a static object
+        # seen again at a size drawn before reuses it
+        tag = (sun_obj.tobytes(), np.asarray(obj_up, np.float64).tobytes())
+        drawn = self._sm_drawn.get(size)
+        if drawn is not None and drawn[0] is up and drawn[1] == tag:
+            return M, tex, size, zr, texel
         fbo.use()
         fbo.viewport = (0, 0, size[0], size[1])
         fbo.clear(1e9, 0.0, 0.0, 0.0, depth=1.0)
         self._prog_sm["u_light"].write(M.T.astype("f4").tobytes())
         self._prog_sm["u_zr"].value = zr
-        up = self._upload_object(obj)
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
         up.vao_sm.render(moderngl.TRIANGLES)
+        self._sm_drawn[size] = (up, tag)
         return M, tex, size, zr, texel
 
     def _resolve(

@@ -352,3 +352,31 @@ def test_long_triangles_take_the_exact_depth(cams, renderers, monkeypatch):
     exact = rr.render(ball, T_wo, T_wb, proxies=ground, light=no_sun)
     assert r.roi == exact.roi and r.visible_fraction > 0.99
     np.testing.assert_allclose(r.alpha, exact.alpha, atol=1e-6)
+
+
+def test_a_shadow_map_drawn_before_is_reused_only_for_the_same_object_and_sun(cams, renderers):
+    """A renderer draws a shadow map once per object, sun and map size: the object seen
+    again (here from a train 0.2 m nearer, the map's size unchanged) reuses it and
+    renders what a fresh renderer does; another sun or another mesh is drawn anew."""
+    name = "rgb_center"
+    T_wb = vehicle_pose()
+    T_wo = place(T_wb, (16.0, 0.5, 0.0))
+    g = T_wo[:3, 3]
+    ground = _plane(g + np.array([[-20, -20, 0], [20, -20, 0], [20, 20, 0], [-20, 20, 0.0]]))
+    obj = box((0.6, 0.8, 1.8))
+    sun_a = Lighting(sun_dir_world=np.array([0.45, -0.55, 0.7]), sun_intensity=0.8)
+    sun_b = Lighting(sun_dir_world=np.array([-0.5, 0.4, 0.6]), sun_intensity=0.8)
+    nearer = T_wb @ make_T(np.eye(3), (0.2, 0.0, 0.0))
+    cached = ObjectRenderer(cams[name])
+    cached.render(obj, T_wo, T_wb, proxies=ground, light=sun_a)
+    first = dict(cached._sm_drawn)  # size -> what its map holds (a new tuple when drawn)
+    other_mesh = box((0.6, 0.8, 1.7))
+    for T, light, mesh in ((nearer, sun_a, obj), (nearer, sun_b, obj), (T_wb, sun_a, other_mesh)):
+        got = cached.render(mesh, T_wo, T, proxies=ground, light=light)
+        fresh = ObjectRenderer(cams[name]).render(mesh, T_wo, T, proxies=ground, light=light)
+        assert got.roi == fresh.roi and got.shadow.max() > 0.5
+        assert np.array_equal(got.shadow, fresh.shadow) and np.array_equal(got.color, fresh.color)
+        redrawn = [k for k, v in cached._sm_drawn.items() if first.get(k) is not v]
+        assert (redrawn == []) == (light is sun_a and mesh is obj)
+        first = dict(cached._sm_drawn)
+    cached.close()
