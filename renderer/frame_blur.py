@@ -44,6 +44,12 @@ independent of the edge's contrast and direction. Per window (luma, 8-bit):
    ``motion_uv`` (when given): their profile is not smeared by the motion blur the
    composite applies separately (no double blur);
 5. the median of the per-edge sigma^2 (clipped at 0) over at least ``MIN_EDGE_PIXELS``.
+
+A window larger than ``BLUR_MAX_PIXELS`` (a fallen tree 30 m ahead of rgb_highres_center:
+2.6 Mpx) is measured on every k-th band of ``BLUR_BAND_ROWS`` rows (k the smallest that
+brings it under the cap), the bands stacked and the rows near their joins left out like
+the object: the same median from a third of the pixels, whose candidates are capped at
+``MAX_CANDIDATES`` anyway.
 """
 
 from __future__ import annotations
@@ -54,7 +60,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from renderer.sensor_noise import robust_sigma, step_profiles
+from renderer.sensor_noise import band_rows, robust_sigma, step_profiles
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +75,12 @@ MAX_SIGMA_PX = 3.0
 MAX_CANDIDATES = 4000
 #: Pixels the window's noise level (the Canny thresholds) is read from at most.
 NOISE_MAX_PIXELS = 300_000
+#: A larger window is measured on every k-th band of BLUR_BAND_ROWS rows (module doc).
+BLUR_MAX_PIXELS = 1_000_000
+BLUR_BAND_ROWS = 96
+#: Rows each side of a join of two bands left out, grown by EXCLUDE_GROW_PX: the filters
+#: (re-blur and gradient, 10 px) and the profiles (9 px) of an edge stay inside its band.
+JOIN_PX = 6
 STEP_HALF_PX = 6.0
 STRAIGHT_PX = 3.0
 STRAIGHT_TOL_PX = 0.5
@@ -110,11 +122,19 @@ def _gradient_noise_gain(sigma: float) -> float:
 
 
 def candidate_pixels(
-    gray: F32, gx: F32, gy: F32, exclude: NDArray[np.bool_] | None
+    gray: F32,
+    gx: F32,
+    gy: F32,
+    exclude: NDArray[np.bool_] | None,
+    noise_rows: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_]:
     """Edge candidates of a luma window (module docstring, step 1): Canny on ``gx``, ``gy``
-    (the window's gradient at ``DERIV_SIGMA_PX``)."""
-    pixel_noise = robust_sigma(gray, max_pixels=NOISE_MAX_PIXELS)
+    (the window's gradient at ``DERIV_SIGMA_PX``); the pixel noise read on the rows
+    ``noise_rows`` (default all: stacked bands leave their joins out)."""
+    mask = None
+    if noise_rows is not None:
+        mask = np.repeat(np.asarray(noise_rows, bool)[:, None], gray.shape[1], axis=1)
+    pixel_noise = robust_sigma(gray, mask, max_pixels=NOISE_MAX_PIXELS)
     pixel_noise = pixel_noise if np.isfinite(pixel_noise) else 0.0
     noise = pixel_noise * _gradient_noise_gain(DERIV_SIGMA_PX)
     weakest = MIN_CONTRAST / np.sqrt(2.0 * np.pi * (MAX_SIGMA_PX**2 + DERIV_SIGMA_PX**2))
@@ -201,9 +221,19 @@ def estimate_blur_sigma(
     sub = np.asarray(frame_rgb)[v0:v1, u0:u1]
     if sub.shape[0] < 3 * _BORDER_PX or sub.shape[1] < 3 * _BORDER_PX:
         return None
+    rows = band_rows(v1 - v0, u1 - u0, BLUR_MAX_PIXELS, BLUR_BAND_ROWS)
+    noise_rows = None
+    if len(rows) < v1 - v0:  # a large window: its bands stacked, no edge read near a join
+        sub = sub[rows]
+        exclude = (np.zeros(sub.shape[:2], bool) if exclude is None
+                   else np.asarray(exclude, bool)[rows])  # fmt: skip
+        noise_rows = np.ones(len(rows), bool)
+        for j in np.flatnonzero(np.diff(rows) > 1):
+            exclude[max(j - JOIN_PX + 1, 0) : j + JOIN_PX + 1] = True
+            noise_rows[max(j - 1, 0) : j + 3] = False  # the noise operator's 3 x 3
     gray = cv2.cvtColor(np.ascontiguousarray(sub), cv2.COLOR_RGB2GRAY).astype(np.float32)
     gx, gy = _gradient(gray, DERIV_SIGMA_PX)
-    vs, us = np.nonzero(candidate_pixels(gray, gx, gy, exclude))
+    vs, us = np.nonzero(candidate_pixels(gray, gx, gy, exclude, noise_rows))
     ex, ey = gx[vs, us].astype(np.float64), gy[vs, us].astype(np.float64)
     mag = np.maximum(np.hypot(ex, ey), 1e-9)
     normals = np.stack([ex / mag, ey / mag], 1)

@@ -92,7 +92,7 @@ def robust_sigma(
     c = np.asarray(channel, np.float32)
     ok = np.ones(c.shape, np.uint8) if mask is None else np.asarray(mask, np.uint8)
     if max_pixels is not None and c.size > max_pixels:  # bands of rows, as estimate_noise
-        rows = _band_rows(*c.shape[:2], max_pixels)
+        rows = band_rows(*c.shape[:2], max_pixels)
         c, ok = c[rows], ok[rows]
         edge = np.flatnonzero(np.diff(rows) > 1)  # rows whose operator sees two bands
         ok[np.concatenate([edge, edge + 1])] = 0
@@ -104,17 +104,19 @@ def robust_sigma(
     return float(_MAD_TO_SIGMA * np.median(r[ok]))
 
 
-def _band_rows(h: int, w: int, max_pixels: int = MAX_PIXELS) -> NDArray[np.int64]:
+def band_rows(
+    h: int, w: int, max_pixels: int = MAX_PIXELS, band: int = BAND_ROWS
+) -> NDArray[np.int64]:
     """(r,) the window rows :func:`estimate_noise` measures: all of them up to
-    ``max_pixels``, else every k-th band of ``BAND_ROWS`` rows, k the smallest that keeps
-    at most ``max_pixels`` (one band at least)."""
+    ``max_pixels``, else every k-th band of ``band`` rows, k the smallest that keeps at
+    most ``max_pixels`` (one band at least)."""
     rows = np.arange(h)
     if h * w <= max_pixels:
         return rows
     k = int(np.ceil(h * w / max_pixels))
     while True:
-        sel = rows[(rows // BAND_ROWS) % k == 0]
-        if len(sel) * w <= max_pixels or len(sel) <= BAND_ROWS:
+        sel = rows[(rows // band) % k == 0]
+        if len(sel) * w <= max_pixels or len(sel) <= band:
             return sel
         k += 1
 
@@ -127,7 +129,7 @@ def estimate_noise(
     """The frame's noise in ``window`` (u0, v0, u1, v1), without the ``exclude`` pixels
     (a mask of the window's shape: the object). None: too few flat pixels."""
     u0, v0, u1, v1 = window
-    rows = _band_rows(v1 - v0, u1 - u0)
+    rows = band_rows(v1 - v0, u1 - u0)
     img = np.asarray(frame_rgb)[v0:v1, u0:u1][rows].astype(np.float32)
     if img.shape[0] < 8 or img.shape[1] < 8:
         return None

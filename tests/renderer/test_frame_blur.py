@@ -218,3 +218,33 @@ def test_a_pinhole_camera_gets_no_defocus_floor() -> None:
     pinhole = composite(img, r, lab_match=False, aperture_m=0.0)
     s_obj, s_real = sharpness_inside_outside(pinhole, r.roi, r.alpha, real_rgb=img)
     assert 0.8 <= s_obj / s_real <= 1.25, (s_obj, s_real)
+
+
+def test_a_large_window_measured_on_bands_reads_the_same_blur(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A 1200 x 1000 window (above ``BLUR_MAX_PIXELS``) is measured on stacked bands of
+    rows with their joins left out: its estimate is the whole window's within 5 % and the
+    truth within ``TOL``, as a small window's."""
+    import renderer.frame_blur as fb
+
+    h, w, s, sigma = 1200, 1000, 4, 1.2
+    rng = np.random.default_rng(7)
+    scene = np.full((h * s, w * s), 60.0, np.float32)
+    for _ in range(400):
+        c = rng.uniform([0, 0], [w, h]) * s
+        size = rng.uniform(15, 60, 2) * s
+        pts = cv2.boxPoints(((c[0], c[1]), (size[0], size[1]), rng.uniform(0, 180)))
+        cv2.fillPoly(scene, [np.round(pts).astype(np.int32)], float(rng.uniform(30, 220)))
+    img = cv2.resize(cv2.GaussianBlur(scene, (0, 0), sigma * s), (w, h),
+                     interpolation=cv2.INTER_AREA)  # fmt: skip
+    img = np.clip(np.round(img + rng.normal(0.0, 3.0, img.shape)), 0, 255).astype(np.uint8)
+    frame = np.dstack([img, img, img])
+    truth = float(np.sqrt(sigma**2 + (1.0 - 1.0 / s**2) / 12.0))
+    assert len(fb.band_rows(h, w, fb.BLUR_MAX_PIXELS, fb.BLUR_BAND_ROWS)) < 0.7 * h
+    banded = estimate_blur_sigma(frame, (0, 0, w, h))
+    monkeypatch.setattr(fb, "BLUR_MAX_PIXELS", 10**9)
+    whole = estimate_blur_sigma(frame, (0, 0, w, h))
+    assert banded is not None and whole is not None
+    assert abs(banded / whole - 1.0) <= 0.05, (banded, whole)
+    assert abs(banded / truth - 1.0) <= TOL, (banded, truth)

@@ -79,12 +79,12 @@ def test_a_large_window_is_measured_on_bands_to_the_same_noise() -> None:
     """A window of 5.7x ``MAX_PIXELS`` (the frame tiled 5 x 5 with fresh noise): measured
     on every 6th band of rows, the estimate is still within the issue's [0.8, 1.25] of the
     known noise at every level, with lines that cross the bands (every 100th row)."""
-    from renderer.sensor_noise import BAND_ROWS, MAX_PIXELS, _band_rows
+    from renderer.sensor_noise import BAND_ROWS, MAX_PIXELS, band_rows
 
     tiles = [[noisy_frame(10 + 5 * i + j)[0] for j in range(5)] for i in range(5)]
     big = np.stack([np.block([[t[..., c] for t in row] for row in tiles]) for c in range(3)], 2)
     h, w = big.shape[:2]
-    rows = _band_rows(h, w)
+    rows = band_rows(h, w)
     assert len(rows) * w <= MAX_PIXELS < h * w and len(rows) % BAND_ROWS == 0
     exclude = np.zeros((h, w), bool)
     exclude[400:800, 500:1000] = True
