@@ -551,6 +551,19 @@ def gl_projection(K: ArrayLike, width: int, height: int, near: float, far: float
     return P
 
 
+def gl_projection_reversed_z(K: ArrayLike, width: int, height: int, near: float) -> F64:
+    """:func:`gl_projection` with a reversed, infinite depth: clip z = ``near``, so that
+    with ``glClipControl(GL_LOWER_LEFT, GL_ZERO_TO_ONE)`` the window depth is ``near / z``
+    (1 at the near plane, 0 at infinity; use GREATER, clear to 0). Near-plane clipping
+    stays (z_clip <= w); nothing is clipped far away. x and y as :func:`gl_projection`.
+    """
+    if not near > 0:
+        raise ValueError(f"need near > 0, got {near}")
+    P = gl_projection(K, width, height, near, 2.0 * near)
+    P[2] = [0.0, 0.0, 0.0, near]
+    return P
+
+
 def load_cameras(
     labels_raw: dict[str, Any], names: list[str] | None = None
 ) -> dict[str, CameraModel]:

@@ -16,27 +16,24 @@ Per call, for the object at ``T_world_obj`` seen from the vehicle pose ``T_world
    image: ``roi`` = that box + ``ROI_MARGIN_PX``, clipped to the image. With
    ``roi=False`` the whole image is the ROI.
 3. **Pinhole render of the ROI.** The sub-window of the render-setup pinhole that the
-   ROI's remap reads is rendered (supersampled ``s`` x ``s``), with a logarithmic depth
-   (``ln(z / near) / ln(far / near)``, relative precision ~1e-6 of the distance, so
-   objects standing on a ground proxy do not z-fight). The proxies write it per fragment
-   (``gl_FragDepth``); the object at its vertices, interpolated across each triangle, so
-   that llvmpipe tests depth before shading and skips hidden fragments, unless its
-   longest edge L at its nearest depth z makes the interpolation's error, at most
-   ``(L / z)^2 / 8`` of the depth (the log is convex along a screen line: the object
-   reads farther), exceed ``VERTEX_DEPTH_TOL``: then it too writes ``gl_FragDepth`` (the
-   ``EXACT_DEPTH`` shader variant). Built-in obstacles have edges of at most 12 cm:
-   2e-5 of the depth at 10 m.
+   ROI's remap reads is rendered (supersampled ``s`` x ``s``), with a reversed-Z depth
+   (:class:`renderer.gl_context.ReversedZ`: window depth ``near / z`` in a 32-bit float
+   buffer, relative precision ~1e-7 of the distance at every range, so objects standing
+   on a ground proxy do not z-fight). It is exact when interpolated from the vertices,
+   so no pass writes ``gl_FragDepth`` and llvmpipe tests depth before shading: hidden
+   fragments cost no shading.
 
    - shadow map: the object's depth seen from the sun (orthographic, object frame; its
      size a power of two from the camera's footprint at the object); drawn once per
      mesh, sun direction and size: a static object seen again reuses it;
    - object pass: lit colour (:mod:`renderer.lighting`'s model, self-shadowed), coverage,
      optical z;
-   - proxy pass (depth only for the image): proxies drawn behind the object's depth
+   - proxy passes (depth only for the image): proxies drawn behind the object's depth
      with a relative bias ``PROXY_DEPTH_BIAS`` (a proxy must be really in front to hide
-     the object); where a proxy is the nearest surface it records "occluded" and the
-     fraction of sun light the object blocks there (percentage-closer filtering of the
-     shadow map).
+     the object), first their depth alone, then, where a proxy is the nearest surface
+     (depth equal), it records "occluded" and the fraction of sun light the object
+     blocks there (percentage-closer filtering of the shadow map): the filter runs once
+     a pixel, not once per proxy layer (the scene's proxies overlap 4-5 deep).
 4. **Distort, then resolve.** The layers (premultiplied by coverage) are resampled
    bilinearly from the supersampled pinhole onto an ``s`` x ``s`` sub-grid of each
    distorted ROI pixel, at the positions the camera's own pinhole<-distorted maps give
@@ -63,9 +60,9 @@ import moderngl
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from geometry.camera import TOL, CameraModel, gl_projection
+from geometry.camera import TOL, CameraModel, gl_projection_reversed_z
 from geometry.transforms import invert_T
-from renderer.gl_context import create_context
+from renderer.gl_context import create_context, reversed_z
 from renderer.lighting import SRGB8_TO_LINEAR, Lighting
 from renderer.mesh import Material, ObjectMesh, ProxyMesh
 
@@ -78,8 +75,6 @@ ROI_MARGIN_PX = 8  # around the projected extent (blur and feathering room for c
 AUTO_SSAA_MAX = 4
 AUTO_SSAA_SAMPLES = 1.2e5  # llvmpipe cost grows with triangles x samples
 PROXY_DEPTH_BIAS = 2e-4  # relative depth a proxy must be in front to hide the object
-#: Largest relative depth error of the object's per-vertex depth (module docstring, step 3).
-VERTEX_DEPTH_TOL = 0.1 * PROXY_DEPTH_BIAS
 SHADOW_MAP_MIN, SHADOW_MAP_MAX = 64, 2048
 _SHADOW_MAPS_KEPT = 3
 SHADOW_MAX_LENGTH = 4.0  # ground shadow length at most this x the object's height (ROI)
@@ -233,8 +228,6 @@ _OBJ_VERTEX = """
 #version 330
 uniform mat4 u_mvp;
 uniform mat4 u_light;
-uniform float u_near;
-uniform float u_log_far;
 in vec3 in_pos;
 in vec3 in_nrm;
 in vec3 in_col;
@@ -253,11 +246,7 @@ void main() {
     v_uv = in_uv;
     v_tan = in_tan;
     v_light = (u_light * vec4(in_pos, 1.0)).xyz;
-    vec4 p = u_mvp * vec4(in_pos, 1.0);
-    // the logarithmic depth at the vertices, interpolated across the triangle (exact per
-    // fragment in the EXACT_DEPTH variant of the fragment shader)
-    p.z = (2.0 * log(max(p.w, 1e-6) / u_near) / u_log_far - 1.0) * p.w;
-    gl_Position = p;
+    gl_Position = u_mvp * vec4(in_pos, 1.0);
 }
 """
 
@@ -270,8 +259,6 @@ uniform vec3 u_cam;      // camera centre, object frame
 uniform vec3 u_sun_rgb;
 uniform vec3 u_sky;
 uniform vec3 u_ground;
-uniform float u_near;
-uniform float u_log_far;
 uniform float u_self_bias;
 // material (renderer.mesh.Material)
 uniform sampler2D u_base_tex;    // sRGB texture: sampled values are linear
@@ -309,9 +296,6 @@ vec4 surface_tex(sampler2D t, vec3 ng) {
 }
 void main() {
     float z = 1.0 / gl_FragCoord.w;
-#ifdef EXACT_DEPTH
-    gl_FragDepth = log(z / u_near) / u_log_far;
-#endif
     vec3 n = normalize(v_nrm);
     vec3 ng = normalize(cross(dFdx(v_pos), dFdy(v_pos)));
     if (dot(ng, n) < 0.0) ng = -ng;
@@ -378,32 +362,35 @@ void main() {
 """
 )
 
+# The proxies' depth pass and shading pass share this vertex shader: the shading pass
+# tests for the depth the first wrote (GL_EQUAL), which ``invariant`` makes bit-exact.
 _PROXY_VERTEX = """
 #version 330
 uniform mat4 u_mvp;
 uniform mat4 u_light;
 in vec3 in_pos;
 out vec3 v_light;
+invariant gl_Position;
 void main() {
     v_light = (u_light * vec4(in_pos, 1.0)).xyz;
     gl_Position = u_mvp * vec4(in_pos, 1.0);
 }
 """
 
+_PROXY_DEPTH_FRAGMENT = """
+#version 330
+void main() {}
+"""
+
 _PROXY_FRAGMENT = (
     """
 #version 330
-uniform float u_near;
-uniform float u_log_far;
-uniform float u_bias;
 in vec3 v_light;
 layout(location = 0) out vec4 f_aux;
 """
     + _SHADOW_FN
     + """
 void main() {
-    float z = 1.0 / gl_FragCoord.w;
-    gl_FragDepth = (log(z / u_near) + u_bias) / u_log_far;
     f_aux = vec4(0.0, 1.0, shadow_at(v_light, 0.0), 1.0);
 }
 """
@@ -480,9 +467,10 @@ class _Targets:
     depth: moderngl.Renderbuffer
     fbo_obj: moderngl.Framebuffer
     fbo_proxy: moderngl.Framebuffer
+    fbo_depth: moderngl.Framebuffer
 
     def release(self) -> None:
-        for o in (self.fbo_obj, self.fbo_proxy, self.col, self.aux, self.depth):
+        for o in (self.fbo_obj, self.fbo_proxy, self.fbo_depth, self.col, self.aux, self.depth):
             o.release()
 
 
@@ -513,8 +501,6 @@ class _Upload:
     vao: moderngl.VertexArray | None  # proxies: the proxy program's
     vao_sm: moderngl.VertexArray | None
     surfaces: list[_Surface] = field(default_factory=list)
-    #: objects: the longest edge of its triangles (m)
-    max_edge_m: float = 0.0
     #: objects: one vertex array per shader variant (:func:`material_defines`), made on use
     vaos: dict[tuple[str, ...], moderngl.VertexArray] = field(default_factory=dict)
 
@@ -646,7 +632,6 @@ class _DepthPass:
 
     P: F64
     near: float
-    log_far: float
     light_obj: F64
     sm_tex: moderngl.Texture | None
     sm_size: tuple[int, int]  # (0, 0): none
@@ -683,8 +668,12 @@ class ObjectRenderer:
         )
         self._obj_fragment = shadow_source(_OBJ_FRAGMENT, gather)
         self._obj_progs: dict[tuple[str, ...], moderngl.Program] = {}
+        self._rz = reversed_z(self.ctx)
         self._prog_proxy = self.ctx.program(
             vertex_shader=_PROXY_VERTEX, fragment_shader=shadow_source(_PROXY_FRAGMENT, gather)
+        )
+        self._prog_proxy_depth = self.ctx.program(
+            vertex_shader=_PROXY_VERTEX, fragment_shader=_PROXY_DEPTH_FRAGMENT
         )
         self._prog_sm = self.ctx.program(vertex_shader=_SM_VERTEX, fragment_shader=_SM_FRAGMENT)
         self._targets: _Targets | None = None
@@ -738,10 +727,11 @@ class ObjectRenderer:
         ctx = self.ctx
         col = ctx.texture((W, H), 4, dtype="f4")
         aux = ctx.texture((W, H), 4, dtype="f4")
-        depth = ctx.depth_renderbuffer((W, H))
+        depth = self._rz.depth32f_renderbuffer((W, H))
         fbo_obj = ctx.framebuffer(color_attachments=[col, aux], depth_attachment=depth)
         fbo_proxy = ctx.framebuffer(color_attachments=[aux], depth_attachment=depth)
-        self._targets = _Targets((W, H), col, aux, depth, fbo_obj, fbo_proxy)
+        fbo_depth = ctx.framebuffer(color_attachments=[], depth_attachment=depth)
+        self._targets = _Targets((W, H), col, aux, depth, fbo_obj, fbo_proxy, fbo_depth)
         log.debug("%s: render targets %dx%d", self.camera.name, W, H)
         return self._targets
 
@@ -799,12 +789,7 @@ class ObjectRenderer:
                     self._texture(m.metallic_roughness_texture, srgb=False),
                 ))  # fmt: skip
             first += int(c)
-        tri = np.asarray(obj.vertices, np.float64)[obj.faces]  # (F, 3, 3)
-        edges = tri - np.roll(tri, 1, axis=1)
-        max_edge = (
-            float(np.sqrt(np.max(np.einsum("fij,fij->fi", edges, edges)))) if len(tri) else 0.0
-        )
-        up = _Upload(obj, key, vbo, ibo, None, vao_sm, surfaces, max_edge_m=max_edge)
+        up = _Upload(obj, key, vbo, ibo, None, vao_sm, surfaces)
         self._obj_cache.append(up)
         if len(self._obj_cache) > 4:
             self._obj_cache.pop(0).release()
@@ -846,6 +831,10 @@ class ObjectRenderer:
             self._prog_proxy, [(vbo, "3f", "in_pos")], index_buffer=ibo, index_element_size=4
         )
         up = _Upload(proxies, key, vbo, ibo, vao, None)
+        up.vaos[("depth",)] = self.ctx.vertex_array(
+            self._prog_proxy_depth, [(vbo, "3f", "in_pos")], index_buffer=ibo,
+            index_element_size=4,
+        )  # fmt: skip
         self._proxy_cache.append(up)
         if len(self._proxy_cache) > 2:
             self._proxy_cache.pop(0).release()
@@ -865,7 +854,8 @@ class ObjectRenderer:
                 o.release()
         self._sms.clear()
         self._sm_drawn.clear()
-        for p in (*self._obj_progs.values(), self._prog_proxy, self._prog_sm):
+        for p in (*self._obj_progs.values(), self._prog_proxy, self._prog_proxy_depth,
+                  self._prog_sm):  # fmt: skip
             p.release()
         self._obj_progs.clear()
 
@@ -967,11 +957,7 @@ class ObjectRenderer:
         K_s[1, 1] *= s
         W_s, H_s = pw * s, ph * s
 
-        # Near/far: everything in front of the object's far side and its shadow.
-        z_far = float(max(pts[:, 2].max(), near * 10.0))
-        far = max(2.0 * z_far + 10.0, near * 100.0)
-        P = gl_projection(K_s, W_s, H_s, near, far)
-        log_far = float(np.log(far / near))
+        P = gl_projection_reversed_z(K_s, W_s, H_s, near)
 
         # Shadow map (object frame, orthographic along the sun).
         light_obj = np.eye(4)
@@ -987,10 +973,15 @@ class ObjectRenderer:
         tg = self._get_targets(W_s, H_s)
         vp = (0, 0, W_s, H_s)
         fbo = tg.fbo_obj
-        depth = _DepthPass(P, near, log_far, light_obj, sm_tex, sm_size)
-        self._draw_object(fbo, vp, obj, view, light, depth, texel)
-        if proxies is not None and len(proxies.faces):
-            self._draw_proxies(tg.fbo_proxy, vp, proxies, view, depth, shadows)
+        depth = _DepthPass(P, near, light_obj, sm_tex, sm_size)
+        self._rz.zero_to_one(True)
+        try:
+            self._draw_object(fbo, vp, obj, view, light, depth, texel)
+            if proxies is not None and len(proxies.faces):
+                self._draw_proxies(tg, vp, proxies, view, depth, shadows)
+        finally:  # the context's defaults for its other users
+            self._rz.zero_to_one(False)
+            self.ctx.depth_func = "<"
 
         col = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=0, dtype="f4"), "f4")
         aux = np.frombuffer(fbo.read(viewport=vp, components=4, attachment=1, dtype="f4"), "f4")
@@ -1089,15 +1080,13 @@ class ObjectRenderer:
         ctx = self.ctx
         ctx.enable(moderngl.DEPTH_TEST)
         ctx.disable(moderngl.CULL_FACE | moderngl.BLEND)
-        ctx.depth_func = "<"
+        ctx.depth_func = ">"  # reversed Z: nearer is greater
         fbo.use()
         fbo.viewport = vp
-        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=vp)
+        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=0.0, viewport=vp)
 
         up_o = self._upload_object(obj)
         shadow = depth.sm_tex is not None and min(depth.sm_size) > 0
-        z_min = float(np.min(obj.vertices @ view.T_opt_obj[2, :3]) + view.T_opt_obj[2, 3])
-        exact_depth = (up_o.max_edge_m / max(z_min, depth.near)) ** 2 / 8.0 > VERTEX_DEPTH_TOL
         common: dict[str, object] = {
             "u_sun": tuple(view.sun_obj),
             "u_up": tuple(view.up_obj),
@@ -1105,8 +1094,6 @@ class ObjectRenderer:
             "u_sun_rgb": (light.sun_intensity,) * 3,
             "u_sky": tuple(light.sky_rgb),
             "u_ground": tuple(light.ambient_rgb),
-            "u_near": depth.near,
-            "u_log_far": depth.log_far,
             "u_self_bias": 2.0 * texel,
         }
         mvp = (depth.P @ view.T_opt_obj).T.astype("f4").tobytes()
@@ -1118,7 +1105,7 @@ class ObjectRenderer:
                 normal=sf.normal is not None,
                 mr=sf.mr is not None,
                 shadow=shadow,
-            ) + (("EXACT_DEPTH",) if exact_depth else ())
+            )
             pg, vao = self._object_variant(up_o, defines)
             pg["u_mvp"].write(mvp)
             _set_uniforms(pg, {**common, **_material_uniforms(sf)})
@@ -1156,7 +1143,7 @@ class ObjectRenderer:
 
     def _draw_proxies(
         self,
-        fbo_p: moderngl.Framebuffer,
+        tg: _Targets,
         vp: tuple[int, int, int, int],
         proxies: ProxyMesh,
         view: _View,
@@ -1164,23 +1151,41 @@ class ObjectRenderer:
         shadows: bool,
     ) -> None:
         """Draw the proxies over the object: they occlude it and receive its shadow.
-        Uploaded relative to a grid-rounded origin near the object (float32 stays small)."""
+        Uploaded relative to a grid-rounded origin near the object (float32 stays small).
+        Their depth first (biased: clip z scaled by ``1 / (1 + PROXY_DEPTH_BIAS)``, i.e.
+        each proxy read that much farther), then the shading where a proxy's depth is the
+        one kept: hidden proxy layers are never shaded."""
         T_world_obj = view.T_world_obj
         origin = np.round(T_world_obj[:3, 3] / _PROXY_ORIGIN_GRID) * _PROXY_ORIGIN_GRID
         T_world_origin = np.eye(4)
         T_world_origin[:3, 3] = origin
         up_p = self._upload_proxies(proxies, origin)
-        pp = self._prog_proxy
         T_obj_origin = invert_T(T_world_obj) @ T_world_origin
-        pp["u_mvp"].write((depth.P @ view.T_opt_world @ T_world_origin).T.astype("f4").tobytes())
-        pp["u_light"].write((depth.light_obj @ T_obj_origin).T.astype("f4").tobytes())
-        pp["u_near"].value = depth.near
-        pp["u_log_far"].value = depth.log_far
-        pp["u_bias"].value = PROXY_DEPTH_BIAS
+        mvp = depth.P @ view.T_opt_world @ T_world_origin
+        mvp[2] /= 1.0 + PROXY_DEPTH_BIAS
+        mvp_b = mvp.T.astype("f4").tobytes()
+        light_b = (depth.light_obj @ T_obj_origin).T.astype("f4").tobytes()
+        for prog in (self._prog_proxy_depth, self._prog_proxy):
+            prog["u_mvp"].write(mvp_b)
+            if "u_light" in prog:
+                prog["u_light"].write(light_b)
+        ctx = self.ctx
+        ctx.depth_func = ">"
+        tg.fbo_depth.use()
+        tg.fbo_depth.viewport = vp
+        up_p.vaos[("depth",)].render(moderngl.TRIANGLES)
+
+        pp = self._prog_proxy
         self._set_shadow_uniforms(pp, depth.sm_tex, depth.sm_size if shadows else (0, 0))
+        ctx.depth_func = "=="
+        fbo_p = tg.fbo_proxy
         fbo_p.use()
         fbo_p.viewport = vp
-        up_p.vao.render(moderngl.TRIANGLES)
+        fbo_p.depth_mask = False
+        try:
+            up_p.vao.render(moderngl.TRIANGLES)
+        finally:
+            fbo_p.depth_mask = True
 
     def _set_shadow_uniforms(
         self, prog: moderngl.Program, tex: moderngl.Texture | None, size: tuple[int, int]

@@ -12,6 +12,7 @@ from geometry.camera import (
     T_CAM_OPT,
     CameraModel,
     gl_projection,
+    gl_projection_reversed_z,
     load_cameras,
     undistort_normalized,
     valid_radius,
@@ -273,6 +274,22 @@ def test_gl_projection_maps_pixel_centres():
     assert gl_projection(K, W, H, 0.5, 100.0) @ np.array([0, 0, 0.5, 1]) @ np.array(
         [0, 0, 1, 0]
     ) / 0.5 == pytest.approx(-1.0)
+
+
+def test_reversed_z_projection_keeps_x_y_and_gives_near_over_z():
+    """Reversed, infinite Z: the same x, y as gl_projection; window depth (clip z over w,
+    with clip z in [0, w]) is near / z: 1 at the near plane, falling towards 0."""
+    K = np.array([[400.0, 0.0, 101.3], [0.0, 410.0, 77.8], [0.0, 0.0, 1.0]])
+    W, H, near = 200, 150, 0.05
+    P = gl_projection_reversed_z(K, W, H, near)
+    Q = gl_projection(K, W, H, near, 100.0)
+    for z in (near, 4.0, 1234.5):
+        p = np.array([0.3 * z, -0.2 * z, z, 1.0])
+        clip, ref = P @ p, Q @ p
+        np.testing.assert_allclose(clip[[0, 1, 3]], ref[[0, 1, 3]], rtol=1e-15)
+        assert clip[2] / clip[3] == pytest.approx(near / z, rel=1e-15)
+    with pytest.raises(ValueError):
+        gl_projection_reversed_z(K, W, H, 0.0)
 
 
 @pytest.mark.gl

@@ -302,56 +302,59 @@ def test_gathered_shadow_filter_equals_texel_fetches(cams, renderers):
         assert np.array_equal(ra.color, rb.color)
 
 
-def test_long_triangles_take_the_exact_depth(cams, renderers, monkeypatch):
-    """The object's depth is interpolated from its vertices (llvmpipe then tests depth
-    before shading) only where that is exact enough. A 6 m slab of two triangles 1 cm
-    above a ground proxy at 12-18 m is wholly visible (exact per-fragment depth), 1 mm
-    below it wholly hidden; forced onto its vertices' depth, the ground hides it (the log
-    of the depth is convex along a screen line: interpolated, the slab reads farther).
-    A sphere of short edges keeps the vertex depth, with the exact depth's coverage."""
-    import renderer.object_render as ormod
-
-    name = "rgb_center"
+def test_long_triangles_get_the_exact_depth_at_every_range(cams, renderers):
+    """The depth (reversed Z, ``near / z`` in a float buffer) is interpolated from the
+    vertices, exactly (1/z is affine on the screen): a 6 m x 2 m slab of two triangles
+    1 cm above a ground proxy is wholly visible, 1 mm below it wholly hidden, near
+    (12-18 m) and far (150-156 m, where 1 mm is 7e-6 of the distance)."""
+    name = "rgb_highres_center"
     rr = renderer(renderers, cams, name)
     T_wb = vehicle_pose()
-    T_wo = T_wb @ make_T(np.eye(3), (12.0, -0.5, 0.0))
-    quad = np.array([[-20, -20, 0], [20, -20, 0], [20, 20, 0], [-20, 20, 0.0]])
-    ground = _plane(transform_points(T_wo, quad))  # the object frame's z = 0
     no_sun = Lighting(sun_intensity=0.0)
 
     def slab(h: float) -> ObjectMesh:
-        v = np.array([[0.0, 0, h], [6.0, 0, h], [6.0, 1.0, h], [0.0, 1.0, h]])
+        v = np.array([[0.0, -1, h], [6.0, -1, h], [6.0, 1.0, h], [0.0, 1.0, h]])
         return ObjectMesh(
             v, np.array([[0, 1, 2], [0, 2, 3]]), np.full((4, 3), 0.4, np.float32),
             np.ones(4, np.float32),
         )  # fmt: skip
 
     above, below = slab(0.01), slab(-0.001)
-    alone = rr.render(above, T_wo, T_wb, light=no_sun).alpha.sum()
-    assert alone > 1000
-    assert rr.render(above, T_wo, T_wb, proxies=ground, light=no_sun).alpha.sum() > 0.999 * alone
-    assert rr.render(below, T_wo, T_wb, proxies=ground, light=no_sun).alpha.sum() == 0.0
-    assert any("EXACT_DEPTH" in d for d in rr._obj_progs)
-    monkeypatch.setattr(ormod, "VERTEX_DEPTH_TOL", np.inf)
-    forced = rr.render(above, T_wo, T_wb, proxies=ground, light=no_sun).alpha.sum()
-    assert forced < 0.5 * alone
+    for ahead in (12.0, 150.0):
+        T_wo = T_wb @ make_T(np.eye(3), (ahead, -0.5, 0.0))
+        quad = np.array([[-20, -20, 0], [20, -20, 0], [20, 20, 0], [-20, 20, 0.0]])
+        ground = _plane(transform_points(T_wo, quad))  # the object frame's z = 0
+        alone = rr.render(above, T_wo, T_wb, light=no_sun).alpha.sum()
+        assert alone > (10000 if ahead < 100 else 20)
+        seen = rr.render(above, T_wo, T_wb, proxies=ground, light=no_sun).alpha.sum()
+        assert seen > 0.999 * alone
+        assert rr.render(below, T_wo, T_wb, proxies=ground, light=no_sun).alpha.sum() == 0.0
 
-    ball = sphere(0.5)
-    monkeypatch.setattr(ormod, "VERTEX_DEPTH_TOL", 0.1 * ormod.PROXY_DEPTH_BIAS)
-    variants: list[tuple[str, ...]] = []
-    real_variant = rr._object_variant
 
-    def recorded(up, defines):
-        variants.append(defines)
-        return real_variant(up, defines)
-
-    monkeypatch.setattr(rr, "_object_variant", recorded)
-    r = rr.render(ball, T_wo, T_wb, proxies=ground, light=no_sun)
-    assert variants and not any("EXACT_DEPTH" in d for d in variants)
-    monkeypatch.setattr(ormod, "VERTEX_DEPTH_TOL", 0.0)  # always exact
-    exact = rr.render(ball, T_wo, T_wb, proxies=ground, light=no_sun)
-    assert r.roi == exact.roi and r.visible_fraction > 0.99
-    np.testing.assert_allclose(r.alpha, exact.alpha, atol=1e-6)
+def test_proxy_layers_hidden_behind_the_nearest_change_nothing(cams, renderers):
+    """The proxies' shading runs where a proxy's depth is the one kept (depth pass, then
+    GL_EQUAL): ground planes stacked 5-40 cm below the ground the object stands on, drawn
+    before and after it, leave the render (colour, coverage, shadow) bit-equal to the
+    ground alone."""
+    name = "rgb_center"
+    rr = renderer(renderers, cams, name)
+    T_wb = vehicle_pose()
+    T_wo = place(T_wb, (14.0, 0.5, 0.0))
+    g = T_wo[:3, 3]
+    quad = np.array([[-20, -20, 0], [20, -20, 0], [20, 20, 0], [-20, 20, 0.0]])
+    top = _plane(g + quad)
+    layers = [_plane(g + quad - [0, 0, dz]) for dz in (0.05, 0.4)]
+    stack = [layers[0], top, layers[1]]
+    v = np.concatenate([m.vertices for m in stack])
+    f = np.concatenate([m.faces + 4 * i for i, m in enumerate(stack)])
+    stacked = ProxyMesh(v, f)
+    light = Lighting(sun_dir_world=np.array([0.45, -0.55, 0.7]), sun_intensity=0.8)
+    obj = box((0.6, 0.8, 1.8))
+    ra = rr.render(obj, T_wo, T_wb, proxies=top, light=light)
+    rb = rr.render(obj, T_wo, T_wb, proxies=stacked, light=light)
+    assert ra.roi == rb.roi and ra.shadow.max() > 0.5
+    for k in ("color", "alpha", "shadow"):
+        assert np.array_equal(getattr(ra, k), getattr(rb, k)), k
 
 
 def test_a_shadow_map_drawn_before_is_reused_only_for_the_same_object_and_sun(cams, renderers):
