@@ -156,20 +156,15 @@ def anchor_pixel_jacobian(
     point ``T_i T'^-1 p_obj`` from ``T_i``)."""
     q = np.linalg.solve(T_r, np.append(p_obj, 1.0))
     steps = np.array([STEP_ROT] * 3 + [STEP_POS] * 3)
-    p_world = [np.asarray(p_obj, np.float64)]
-    for c in range(12):
-        d = np.zeros(6)
-        d[c % 6] = steps[c % 6]
-        if c < 6:
-            p_world.append((_perturbed(T_r, d) @ q)[:3])
-        elif project_many is not None:
-            p_world.append((T_i @ np.linalg.solve(_perturbed(T_i, d), np.append(p_obj, 1.0)))[:3])
+    units = [_unit(c, steps) for c in range(6)]
+    p_world = [np.asarray(p_obj, np.float64)] + [(_perturbed(T_r, d) @ q)[:3] for d in units]
     if project_many is not None:
+        p_h = np.append(p_obj, 1.0)
+        p_world += [(T_i @ np.linalg.solve(_perturbed(T_i, d), p_h))[:3] for d in units]
         uv = np.asarray(project_many(np.stack(p_world), T_i), np.float64)
     else:
         uv = np.stack(
-            [project(p, T_i) for p in p_world]
-            + [project(p_obj, _perturbed(T_i, _unit(c, steps))) for c in range(6)]
+            [project(p, T_i) for p in p_world] + [project(p_obj, _perturbed(T_i, d)) for d in units]
         )
     J: F64 = ((uv[1:] - uv[0]) / np.concatenate([steps, steps])[:, None]).T
     return J

@@ -248,3 +248,35 @@ def test_a_large_window_measured_on_bands_reads_the_same_blur(
     assert banded is not None and whole is not None
     assert abs(banded / whole - 1.0) <= 0.05, (banded, whole)
     assert abs(banded / truth - 1.0) <= TOL, (banded, truth)
+
+
+def test_the_joins_of_stacked_bands_are_left_out(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a frame whose level ramps down the rows (0.35 levels a row) the stacked bands
+    meet in sharp steps of ~34 levels across the whole width, which no camera made: left
+    out (``JOIN_PX``), the banded estimate is the whole window's within 5 %; read, they
+    pull it far below."""
+    import renderer.frame_blur as fb
+
+    h, w, s, sigma = 1200, 1000, 4, 1.2
+    rng = np.random.default_rng(11)
+    scene = np.zeros((h * s, w * s), np.float32)
+    for _ in range(60):
+        c = rng.uniform([0, 0], [w, h]) * s
+        size = rng.uniform(15, 60, 2) * s
+        pts = cv2.boxPoints(((c[0], c[1]), (size[0], size[1]), rng.uniform(0, 180)))
+        cv2.fillPoly(scene, [np.round(pts).astype(np.int32)], float(rng.uniform(-60, 60)))
+    img = cv2.resize(cv2.GaussianBlur(scene, (0, 0), sigma * s), (w, h),
+                     interpolation=cv2.INTER_AREA)  # fmt: skip
+    img += 40.0 + 0.35 * np.arange(h, dtype=np.float32)[:, None]
+    img = np.clip(np.round(img + rng.normal(0.0, 2.0, img.shape)), 0, 255).astype(np.uint8)
+    frame = np.dstack([img, img, img])
+    rows = fb.band_rows(h, w, fb.BLUR_MAX_PIXELS, fb.BLUR_BAND_ROWS)
+    assert np.count_nonzero(np.diff(rows) > 1) >= 4
+    banded = estimate_blur_sigma(frame, (0, 0, w, h))
+    monkeypatch.setattr(fb, "JOIN_PX", 0)
+    joins_read = estimate_blur_sigma(frame, (0, 0, w, h))
+    monkeypatch.setattr(fb, "BLUR_MAX_PIXELS", 10**9)
+    whole = estimate_blur_sigma(frame, (0, 0, w, h))
+    assert banded is not None and whole is not None and joins_read is not None
+    assert abs(banded / whole - 1.0) <= 0.05, (banded, whole)
+    assert joins_read < 0.8 * whole, (joins_read, whole)
