@@ -29,6 +29,7 @@ from worker.augmentation.lidar_noise import measure_pending_noise
 from worker.augmentation.plan import Plan
 from worker.augmentation.records import dump_chunk, dump_plan, load_chunk, read_plan
 from worker.evaluation.object_error import measure_chunk
+from worker.orchestration.memory import keep_freed_memory
 
 log = logging.getLogger(__name__)
 
@@ -117,7 +118,9 @@ def start_pool(
 ) -> Any:
     """A process pool for :func:`augment`, warmed with the cameras (GL context, render
     setups from ``setup_cache``) while the parent plans."""
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=pool_context())
+    pool = ProcessPoolExecutor(
+        max_workers=workers, mp_context=pool_context(), initializer=keep_freed_memory
+    )
     cams = [c.to_json() for c in cameras or []]
     cache = None if setup_cache is None else str(setup_cache)
     for _ in range(workers):

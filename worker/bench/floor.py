@@ -22,6 +22,7 @@ import cv2
 from worker.augmentation.augment import augment
 from worker.augmentation.pool import pool_context
 from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel, RenderSpec
+from worker.orchestration.memory import keep_freed_memory
 from worker.osdar.errors import atomic_write_bytes
 from worker.osdar.pcd import read_pcd, write_pcd
 from worker.osdar.sequence import Sequence
@@ -64,7 +65,10 @@ def measure_floor(
             _io_frame(jobs, compression)
         wall = time.perf_counter() - tic
     else:
-        with ProcessPoolExecutor(workers, mp_context=pool_context()) as pool:
+        # the augmentation pool's processes, malloc settings included (memory.py)
+        with ProcessPoolExecutor(
+            workers, mp_context=pool_context(), initializer=keep_freed_memory
+        ) as pool:
             list(pool.map(_noop, range(workers * 2)))  # workers up before the clock
             tic = time.perf_counter()
             list(pool.map(_io_frame, tasks, [compression] * len(tasks)))
