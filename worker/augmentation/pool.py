@@ -29,7 +29,7 @@ from worker.augmentation.lidar_noise import measure_pending_noise
 from worker.augmentation.plan import Plan
 from worker.augmentation.records import dump_chunk, dump_plan, load_chunk, read_plan
 from worker.evaluation.object_error import measure_chunk
-from worker.orchestration.memory import keep_freed_memory
+from worker.orchestration.malloc_tuning import tune_malloc
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +119,7 @@ def start_pool(
     """A process pool for :func:`augment`, warmed with the cameras (GL context, render
     setups from ``setup_cache``) while the parent plans."""
     pool = ProcessPoolExecutor(
-        max_workers=workers, mp_context=pool_context(), initializer=keep_freed_memory
+        max_workers=workers, mp_context=pool_context(), initializer=tune_malloc
     )
     cams = [c.to_json() for c in cameras or []]
     cache = None if setup_cache is None else str(setup_cache)

@@ -22,7 +22,7 @@ import cv2
 from worker.augmentation.augment import augment
 from worker.augmentation.pool import pool_context
 from worker.augmentation.spec import AugmentSpec, ObjectSource, PlacementModel, RenderSpec
-from worker.orchestration.memory import keep_freed_memory
+from worker.orchestration.malloc_tuning import tune_malloc
 from worker.osdar.errors import atomic_write_bytes
 from worker.osdar.pcd import read_pcd, write_pcd
 from worker.osdar.sequence import Sequence
@@ -65,9 +65,9 @@ def measure_floor(
             _io_frame(jobs, compression)
         wall = time.perf_counter() - tic
     else:
-        # the augmentation pool's processes, malloc settings included (memory.py)
+        # the augmentation pool's processes, malloc settings included (malloc_tuning.py)
         with ProcessPoolExecutor(
-            workers, mp_context=pool_context(), initializer=keep_freed_memory
+            workers, mp_context=pool_context(), initializer=tune_malloc
         ) as pool:
             list(pool.map(_noop, range(workers * 2)))  # workers up before the clock
             tic = time.perf_counter()

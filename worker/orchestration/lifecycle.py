@@ -12,21 +12,21 @@ from celery.signals import worker_process_init, worker_ready, worker_shutdown
 
 from osdar_platform.settings import get_settings
 from worker.orchestration.celery_app import celery_app
-from worker.orchestration.memory import keep_freed_memory
+from worker.orchestration.malloc_tuning import tune_malloc
 from worker.orchestration.reaper import start_reaper, stop_reaper
 
 
 @worker_process_init.connect
-def _keep_freed_memory(**_: Any) -> None:
-    """A prefork child keeps its freed memory for the next frame (memory.py)."""
-    keep_freed_memory()
+def _tune_malloc(**_: Any) -> None:
+    """A prefork child keeps its freed memory for the next frame (malloc_tuning.py)."""
+    tune_malloc()
 
 
 @worker_ready.connect
 def _start_reaper(sender: Any = None, **_: Any) -> None:
     """Every worker sweeps for lost jobs at start and then periodically (reaper.py); a solo
-    worker, which runs its tasks itself, keeps its freed memory (memory.py)."""
-    keep_freed_memory()
+    worker, which runs its tasks itself, keeps its freed memory (malloc_tuning.py)."""
+    tune_malloc()
 
     app = getattr(sender, "app", None) or celery_app
     start_reaper(get_settings(), app)

@@ -1,4 +1,4 @@
-"""keep_freed_memory: a frame's big arrays reuse freed pages instead of fresh ones."""
+"""tune_malloc: a frame's big arrays reuse freed pages instead of fresh ones."""
 
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ import sys
 
 import pytest
 
-from worker.orchestration.memory import keep_freed_memory
+from worker.orchestration.malloc_tuning import tune_malloc
 
 _PROBE = """
 import resource, sys
 import numpy as np
 if sys.argv[1] == "1":
-    from worker.orchestration.memory import keep_freed_memory
-    assert keep_freed_memory()
+    from worker.orchestration.malloc_tuning import tune_malloc
+    assert tune_malloc()
 def frame():  # arrays of a few MB made and freed, as a frame's planes are
     a = [np.ones((770, 1600), np.float32) for _ in range(6)]
     return sum(float(x[0, 0]) for x in a)
@@ -48,5 +48,5 @@ def test_freed_arrays_are_reused_not_faulted_in_again() -> None:
 
 
 @pytest.mark.skipif(not glibc, reason="glibc's mallopt")
-def test_keep_freed_memory_is_taken_once_per_process() -> None:
-    assert keep_freed_memory() and keep_freed_memory()
+def test_tune_malloc_is_taken_and_idempotent() -> None:
+    assert tune_malloc() and tune_malloc()
