@@ -501,7 +501,8 @@ class _Upload:
     vao: moderngl.VertexArray | None  # proxies: the proxy program's
     vao_sm: moderngl.VertexArray | None
     surfaces: list[_Surface] = field(default_factory=list)
-    #: objects: one vertex array per shader variant (:func:`material_defines`), made on use
+    #: objects: one vertex array per shader variant (:func:`material_defines`), made on use;
+    #: proxies: their depth pass's under ``("depth",)``
     vaos: dict[tuple[str, ...], moderngl.VertexArray] = field(default_factory=dict)
 
     def release(self) -> None:
@@ -628,10 +629,9 @@ class _View:
 
 @dataclass(frozen=True)
 class _DepthPass:
-    """What the object and proxy passes share: projection, depth range, shadow map."""
+    """What the object and proxy passes share: projection (reversed Z), shadow map."""
 
     P: F64
-    near: float
     light_obj: F64
     sm_tex: moderngl.Texture | None
     sm_size: tuple[int, int]  # (0, 0): none
@@ -973,7 +973,7 @@ class ObjectRenderer:
         tg = self._get_targets(W_s, H_s)
         vp = (0, 0, W_s, H_s)
         fbo = tg.fbo_obj
-        depth = _DepthPass(P, near, light_obj, sm_tex, sm_size)
+        depth = _DepthPass(P, light_obj, sm_tex, sm_size)
         self._rz.zero_to_one(True)
         try:
             self._draw_object(fbo, vp, obj, view, light, depth, texel)

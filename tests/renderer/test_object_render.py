@@ -331,6 +331,37 @@ def test_long_triangles_get_the_exact_depth_at_every_range(cams, renderers):
         assert rr.render(below, T_wo, T_wb, proxies=ground, light=no_sun).alpha.sum() == 0.0
 
 
+def test_the_proxy_bias_is_resolved_far_away(cams, renderers):
+    """The float depth resolves the proxies' relative bias (``PROXY_DEPTH_BIAS``, 2e-4)
+    at 150-450 m: a panel facing the camera 1e-4 of the distance behind a wall proxy
+    stays visible, 3e-4 behind it is hidden (a 24-bit fixed-point ``near / z`` has steps
+    of 1.8e-4 to 5.4e-4 of the distance there)."""
+    import renderer.object_render as ormod
+
+    name = "rgb_highres_center"
+    rr = renderer(renderers, cams, name)
+    cam = cams[name]
+    T_wb = vehicle_pose()
+    T_w_opt = T_wb @ cam.T_base_opt
+    quad = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0.0]])
+    no_sun = Lighting(sun_intensity=0.0)
+    assert ormod.PROXY_DEPTH_BIAS == pytest.approx(2e-4)
+    for D in (150.0, 300.0, 450.0):
+        half = D / 150.0
+        panel = ObjectMesh(
+            half * quad, np.array([[0, 1, 2], [0, 2, 3]]), np.full((4, 3), 0.4, np.float32),
+            np.ones(4, np.float32),
+        )  # fmt: skip
+        at_D = T_w_opt @ make_T(np.eye(3), (0.0, 0.0, D))
+        wall = _plane(transform_points(at_D, 10.0 * half * quad))
+        for behind, seen in ((1e-4, True), (3e-4, False)):
+            T_wo = T_w_opt @ make_T(np.eye(3), (0.0, 0.0, D * (1.0 + behind)))
+            alone = rr.render(panel, T_wo, T_wb, light=no_sun).alpha.sum()
+            got = rr.render(panel, T_wo, T_wb, proxies=wall, light=no_sun).alpha.sum()
+            assert alone > 300
+            assert (got > 0.999 * alone) if seen else (got == 0.0), (D, behind, got, alone)
+
+
 def test_proxy_layers_hidden_behind_the_nearest_change_nothing(cams, renderers):
     """The proxies' shading runs where a proxy's depth is the one kept (depth pass, then
     GL_EQUAL): ground planes stacked 5-40 cm below the ground the object stands on, drawn
