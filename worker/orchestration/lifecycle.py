@@ -1,4 +1,5 @@
-"""Worker lifecycle hooks: the reaper thread starts when a worker is ready and stops with it.
+"""Worker lifecycle hooks: the reaper thread starts when a worker is ready and stops with it;
+every worker process keeps its freed memory (``malloc_tuning.py``).
 
 Loaded by every worker through the Celery app's ``include`` list (``celery_app.py``); the
 API, which only sends tasks, never imports it.
