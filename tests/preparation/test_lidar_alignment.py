@@ -126,6 +126,25 @@ def test_recovers_known_corrections_on_planes():
     assert json.loads(json.dumps(js)) == js  # plain JSON for the prepared summary
 
 
+def test_threads_give_the_one_thread_result_exactly(monkeypatch):
+    """The frames and sensors are worked in threads sharing the reference's planes; the
+    random draws stay in one order: every correction equals the one-thread estimate to
+    the bit, whichever thread finished first."""
+    import worker.preparation.lidar_alignment as la
+
+    frames = _frames(ERRORS, n_frames=6)
+    monkeypatch.setattr(la, "thread_budget", lambda most=4: 4)
+    threaded = [estimate_from_points(frames) for _ in range(3)]
+    monkeypatch.setattr(la, "thread_budget", lambda most=4: 1)
+    alone = estimate_from_points(frames)
+    assert set(alone.sensors) == {1, 2, 3}
+    for got in threaded:
+        for s, c in alone.sensors.items():
+            assert np.array_equal(got.sensors[s].T_ref_sensor, c.T_ref_sensor), s
+            assert got.sensors[s].inliers == c.inliers
+            assert got.sensors[s].split_rot_deg == c.split_rot_deg
+
+
 def test_a_direction_the_overlap_does_not_constrain_is_left_alone():
     # lidar 3 sees only the ground and planes along the track: its offset along the track
     # is invisible, the rest is not; the estimate must not make the invisible part up

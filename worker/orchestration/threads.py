@@ -46,3 +46,13 @@ def thread_caps(concurrency: int | None, environ: dict[str, str] | None = None) 
     cores = os.cpu_count() or 1
     n = max(1, cores // max(1, concurrency or cores))
     return {k: str(n) for k in THREAD_VARS if k not in env}
+
+
+def thread_budget(most: int = 4) -> int:
+    """Threads a process may run its own work in (a pool of Python threads around
+    GIL-releasing calls: open3d's ICP, scipy's KD-trees): its thread cap
+    (``OMP_NUM_THREADS``, set for worker processes by :func:`thread_caps`) or else its
+    cores, at most ``most``."""
+    cap = os.environ.get("OMP_NUM_THREADS", "").strip()
+    n = int(cap) if cap.isdigit() and int(cap) > 0 else (os.cpu_count() or 1)
+    return max(1, min(n, most))

@@ -30,7 +30,6 @@ of 10 and 30 frames.
 from __future__ import annotations
 
 import logging
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -38,6 +37,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
+from worker.orchestration.threads import thread_budget
 from worker.preparation.localization.base import LocalizationInput
 from worker.preparation.localization.odometry import read_points, remove_ground
 
@@ -224,11 +224,8 @@ def _icp_threads() -> int:
     """Threads for the pairs' registrations: open3d's ICP releases the GIL, and on clouds
     this small its own OpenMP team gains little (3000 points onto 12000, 40 registrations:
     0.205 s wall with 2 OpenMP threads, 0.180 s with one, 0.13 s as two registrations at
-    a time). The process's thread cap (``OMP_NUM_THREADS``, set for worker processes:
-    worker/orchestration/threads.py) or its cores, at most 4."""
-    cap = os.environ.get("OMP_NUM_THREADS", "").strip()
-    n = int(cap) if cap.isdigit() and int(cap) > 0 else (os.cpu_count() or 1)
-    return max(1, min(n, 4))
+    a time). :func:`~worker.orchestration.threads.thread_budget`, at most 4."""
+    return thread_budget(4)
 
 
 def register_pairs(
