@@ -147,3 +147,34 @@ def test_rendered_object_as_sharp_as_the_frame(cam: CameraModel, sigma: float) -
     s_obj, s_real = sharpness_inside_outside(out, r.roi, r.alpha)
     assert 0.8 <= s_obj / s_real <= 1.25, (s_obj, s_real, sigma)
     rend.close()
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="measured miss: at small blurs the look's 10-90 measure depends on the line "
+    "spread's shape (a rendered edge of 0.41 px reads 1.22x a Gaussian frame edge of "
+    "0.45 px, where the truth is 0.91x)",
+)
+def test_the_look_measure_reads_a_small_blur_as_it_is(cam: CameraModel) -> None:
+    """A straight panel edge (no limbs, no shading) composited into a frame of boxes
+    blurred by 0.45 px (point-sampled, as the twin's frames: the look's small-blur
+    regime), through a pinhole (no defocus floor, no motion): the object's true edge
+    spread is known (its render's pixel box and sub-sampling, ``edge_var_px2``, plus the
+    Gaussian the composite gave it), and so is the frame's (0.45 px). The look's measure
+    (``sharpness_inside_outside``) should read their ratio within 15 %. It reads the
+    object 1.22x the frame here (1.3-1.7x at full resolution) where the truth is 0.91x;
+    at 0.8 and 1.5 px of blur it reads 0.8-0.98x (the test above). The bench's edge-range
+    misses (docs/benchmark.md) are in this regime."""
+    from renderer.composite import frame_blur, gaussian_sigma_px
+
+    rend = ObjectRenderer(cam)
+    r = rend.render(panel(), panel_pose(26.0, 1.0, 0.12), np.eye(4))
+    frame = boxes_frame((cam.height, cam.width), 0.45, 4)
+    out = composite(frame, r, lab_match=False, match_noise=False, aperture_m=0.0,
+                    exposure_s=0.0)  # fmt: skip
+    g = gaussian_sigma_px(r, frame_blur(frame, r, (0.0, 0.0)), 0.0)
+    true_ratio = float(np.sqrt(g * g + r.edge_var_px2)) / 0.45
+    s_obj, s_real = sharpness_inside_outside(out, r.roi, r.alpha)
+    rend.close()
+    assert 0.8 <= true_ratio <= 1.05, true_ratio  # the composite itself is right here
+    assert abs((s_obj / s_real) / true_ratio - 1.0) <= 0.15, (s_obj, s_real, true_ratio)
