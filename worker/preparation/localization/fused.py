@@ -214,6 +214,14 @@ class Sigmas:
     odo_pair_lags: tuple[int, ...] = (10, 30)
     odo_pair_t_a: tuple[float, float] = (0.02, 0.006)
     odo_pair_t_b: tuple[float, float] = (0.0002, 0.0002)
+    #: The pairs' along-track sigma may be scaled down to this share of its design by
+    #: their own residuals (:func:`variance_factors`; every other block's factor stays
+    #: >= 1): the design's 2 cm is what a degenerate scene's registration slips, and on a
+    #: scene it holds KISS-ICP's pairs are good to 4-6 mm, where the INS velocity's
+    #: integral (0.02 m/s of white noise a record) strays 1.1 cm over 30 frames; at the
+    #: design sigma the velocity won (tight_curve-f60-d1-osdar23-s20-bogies: fused 1.74x
+    #: the odometry's translation error over 30 frames, 1.09x scaled).
+    odo_pair_along_floor: float = 0.25
     #: Fine scan-to-scan registration (:mod:`~worker.preparation.localization.scan_pairs`)
     #: of the odometry pairs: their lateral component where its own sigma (floored at
     #: ``scan_pair_lat_floor``, m) is sharper than KISS-ICP's pair. The preparation
@@ -306,12 +314,15 @@ class Sigmas:
     #: offset prior allowed 4 mm.
     sway_damping: float = 0.5
     #: Prior sigma of the base's distance ahead of the bogies' midpoint (m; a state of
-    #: the solve, at 0 a priori). Pinned by default: free (10 m), it traded against the
-    #: turn where the steps are short, and on a slow curve whose odometry misses the turn
-    #: the heading error over 10 frames went 0.004 -> 0.020 deg (test_fused_heading.py).
-    #: A base far ahead of its bogies (an OSDaR23 base at the train's front: 5-10 m) wants
-    #: it estimated, which needs a sequence whose curvature varies (not done).
-    bogie_offset: float = 1e-6
+    #: the solve, at 0 a priori), in the lateral and the vertical rail motion. A base far
+    #: ahead of its bogies (an OSDaR23 base at the train's front: 5-10 m) moves sideways
+    #: by it times the turn and vertically by it times the change of grade: pinned at 0,
+    #: a 60-frame tight curve with the base 12.5 m ahead had its fused heights 1.3 cm
+    #: low over 30 frames and its C2 anchor error 1.90 px (0.73 estimated). Estimated
+    #: only on a run that travels :data:`BOGIE_MIN_TRAVEL_M` with an odometry not
+    #: degenerate: on a slow short curve whose odometry misses the turn it traded against
+    #: the turn (test_fused_heading.py: 0.008 -> 0.16 deg over 10 frames).
+    bogie_offset: float = 10.0
     #: Prior sigma of the merged cloud's residual pitch against the base (rad), estimated
     #: with the poses (after :func:`~.lidar_yaw.lidar_pitch_offset`'s, applied where it
     #: is significant): a cloud pitched by p gives every lidar step and ground pair a climb
@@ -392,10 +403,8 @@ class Problem:
     #: mean heading, left, up (about them roll, pitch and heading wander at their own rates)
     R_bias: F64 = field(default_factory=lambda: np.eye(3))
     ground: dict | None = None  # ground pairs: k, j (P,), T_k_j (P, 4, 4), w (P, 3)
-    #: INS velocity steps: k (S,) earlier frames, d (S,) the step's displacement along
-    #: the earlier frame's forward axis from the INS velocity, dp (S, 3) its world
-    #: displacement, w (S,) 1/sigma
-    #: (:func:`_velocity_steps`)
+    #: INS velocity steps: k (S,) earlier frames, dp (S, 3) the step's world
+    #: displacement from the INS velocity, w (S,) 1/sigma (:func:`_velocity_steps`)
     vel: dict | None = None
     #: Odometry pairs: k, j (Q,), T_k_j (Q, 4, 4), w (Q, 2): 1/sigma of frame j's
     #: position in frame k along the track and laterally (:func:`_odometry_pairs`)
@@ -762,9 +771,10 @@ def _velocity_residuals(x: F64, pb: Problem, R: F64, p: F64) -> F64:
     kv = pb.vel["k"]
     lever = _misalignment_of(x, pb)[0]
     d_ins = p[kv + 1] - p[kv] + (R[kv + 1] - R[kv]) @ lever
-    along = np.einsum("ni,ni->n", R[kv][:, :, 0], d_ins)
-    lat = np.einsum("ni,ni->n", R[kv][:, :, 1], d_ins - pb.vel["dp"])
-    both = np.column_stack([along - pb.vel["d"], lat]) * pb.vel["w"][:, None]
+    miss = d_ins - pb.vel["dp"]
+    along = np.einsum("ni,ni->n", R[kv][:, :, 0], miss)
+    lat = np.einsum("ni,ni->n", R[kv][:, :, 1], miss)
+    both = np.column_stack([along, lat]) * pb.vel["w"][:, None]
     return (both / pb.s("ins_v")).ravel()
 
 
@@ -851,7 +861,7 @@ def _prior_blocks(x: F64, pb: Problem) -> F64:
         v = _sway_rate_of(x, pb)
         for c, prior in enumerate(pb.nh["sway"]):  # first frame's two rows, each step's two
             out.append(prior.residuals(np.column_stack([o[:, c], v[:, c]])))
-        out.append(np.array([d / sig.bogie_offset]))
+        out.append(np.array([d / pb.nh["bogie_sigma"]]))
     if pb.ground is not None:
         out.append(np.array([_cloud_pitch_of(x, pb) / sig.cloud_pitch]))
         if sig.ground_tilt > 0:
@@ -1307,7 +1317,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         vel=_velocity_steps(inp, ins, health, sig) if n >= 2 else None,
         odo_pairs=odo_pairs,
         gyro=gyro,
-        nh=_rail_motion(inp, n, sig),
+        nh=_rail_motion(inp, n, sig, _bogie_sigma(health, degenerate, sig)),
         accel=accel,
         n_acc_knots=0 if accel is None else accel["n_knots"],
         acc_knot_i=np.zeros(0, dtype=np.int64) if accel is None else accel["knot_i"],
@@ -1409,7 +1419,23 @@ def _accel_residuals(x: F64, pb: Problem, R: F64, p: F64) -> F64:
     return (a_base - meas) * pb.accel["w"] / pb.s("accel")
 
 
-def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
+#: Shortest run (m, the INS's travelled distance) on which the base's distance ahead of
+#: its bogies is estimated (:attr:`Sigmas.bogie_offset`); shorter runs keep it at 0.
+BOGIE_MIN_TRAVEL_M = 20.0
+#: The bogie offset's prior sigma (m) where it is not estimated.
+BOGIE_PINNED_M = 1e-6
+
+
+def _bogie_sigma(health: Health, degenerate: bool, sig: Sigmas) -> float:
+    """The prior sigma (m) of the base's distance ahead of its bogies on this run."""
+    travelled = float(health.metrics.get("ins_travelled_m", 0.0))
+    free = not degenerate and travelled >= BOGIE_MIN_TRAVEL_M
+    return sig.bogie_offset if free else BOGIE_PINNED_M
+
+
+def _rail_motion(
+    inp: LocalizationInput, n: int, sig: Sigmas, bogie_sigma: float = BOGIE_PINNED_M
+) -> dict | None:
     """The rail-motion block: a rail vehicle's base point moves along the body's axis
     except for the chord of a turn, d times the turn for a base at distance d ahead of the
     midpoint of its two bogies (in a curve of radius r the body turns about the curve's
@@ -1419,28 +1445,29 @@ def _rail_motion(inp: LocalizationInput, n: int, sig: Sigmas) -> dict | None:
     prior, :mod:`.body_sway`).
 
     Returns w (n-1, 2) 1/sigma of each step's lateral and vertical rows and sway, the
-    :class:`~.body_sway.SwayPrior` of the lateral and the vertical offsets."""
+    :class:`~.body_sway.SwayPrior` of the lateral and the vertical offsets and
+    bogie_sigma, the offset's prior sigma (m)."""
     if n < 2 or not (sig.rail_motion and inp.options.get("fused_rail_motion", True)):
         return None
     w_vert = 1.0 / sig.rail_motion_vert if sig.rail_motion_vert > 0 else 0.0
     w = np.column_stack([np.full(n - 1, 1.0 / sig.rail_motion_lat), np.full(n - 1, w_vert)])
     dt = np.maximum(np.diff(inp.times), 1e-3)
     sway = [oscillator_prior(dt, sig.sway[c], sig.sway_hz[c], sig.sway_damping) for c in range(2)]
-    return {"w": w, "sway": sway}
+    return {"w": w, "sway": sway, "bogie_sigma": float(bogie_sigma)}
 
 
 def _rail_motion_residuals(pb: Problem, R: F64, p: F64, x: F64) -> F64:
     """((n-1) 2,) normalised residuals of the rail motion: frame k + 1's lateral position
     in frame k against the turn between them times (half the step + d) and the change of
-    the sway, its height against the pitch between them times half the step (a pitch
-    about +y, the left axis, lowers the nose) and the change of the bounce."""
+    the sway, its height against the pitch between them times (half the step + d) (a
+    pitch about +y, the left axis, lowers the nose) and the change of the bounce."""
     assert pb.nh is not None
     o, d = _sway_of(x, pb)
     B = np.einsum("nji,nj->ni", R[:-1], p[1:] - p[:-1])
     rot = _log_rotation(np.swapaxes(R[:-1], 1, 2) @ R[1:])
     do = np.diff(o, axis=0)
     lat = B[:, 1] - rot[:, 2] * (0.5 * B[:, 0] + d) - do[:, 0]
-    vert = B[:, 2] + rot[:, 1] * 0.5 * B[:, 0] - do[:, 1]
+    vert = B[:, 2] + rot[:, 1] * (0.5 * B[:, 0] + d) - do[:, 1]
     return (np.column_stack([lat, vert]) * pb.nh["w"] / pb.s("nh")).ravel()
 
 
@@ -1540,18 +1567,18 @@ def _velocity_steps(
 
     The velocity is what an INS measures best (cm/s, Doppler-aided, immune to GNSS jumps):
     over a 0.1 s step it fixes the along-track displacement to millimetres, where lidar
-    odometry degenerates on long straights and lags on slow trains. Along the track: its
-    component on the INS's forward axis (signed: a reversing train). Sideways: the world
-    displacement it gives, projected on the solution's own lateral axis, so the INS's
-    heading does not enter (its direction at a slow train's speed is off by tenths of a
-    degree); its error is the velocity's own, millimetres a second. Over a short run the
+    odometry degenerates on long straights and lags on slow trains. The world
+    displacement it gives is compared on the solution's own forward and lateral axes, so
+    the INS's attitude does not enter (its heading is off by tenths of a degree to a
+    degree; taken along the INS's forward axis, such an error against a body crabbing in
+    a curve shortened the steps by 0.05 %); its error is the velocity's own, millimetres a
+    second. Over a short run the
     body's sway has a mean lateral velocity that only the sway states bound (a
     6 mm sway at 0.7 Hz moves at up to 26 mm/s); the INS velocity sees it. Sigma: the
     INSSTDEV velocity stdev the INS reports (median per axis, within ``ins_v_bounds``),
     else the bounds' upper end; the variance factors then correct it from the residuals.
     Steps whose frames lack an INS record of their own are left out.
-    Returns k (S,), d (S,) the along-track displacement, dp (S, 3) the world displacement
-    and w (S,) 1 / sigma.
+    Returns k (S,), dp (S, 3) the world displacement and w (S,) 1 / sigma.
     """
     if not sig.use_ins_velocity:
         return None
@@ -1575,10 +1602,8 @@ def _velocity_steps(
     except (OSError, ValueError, AttributeError) as exc:
         log.debug("no INS velocity stdev (%s): sigma %.3f m/s", exc, sigma_v)
     health.metrics["fused_ins_velocity_sigma_mps"] = sigma_v
-    forward = ins.T_world_base[k, :3, 0]
     dp = 0.5 * (v[k] + v[k + 1]) * dt[k][:, None]
-    d = np.einsum("ni,ni->n", forward, dp)
-    return {"k": k, "d": d, "dp": dp, "w": 1.0 / (sigma_v * dt[k])}
+    return {"k": k, "dp": dp, "w": 1.0 / (sigma_v * dt[k])}
 
 
 def full_weight_steps(
@@ -2325,7 +2350,9 @@ def variance_factors(
     ``median(r^2)`` estimate, used without redundancy numbers) trusted such blocks as
     designed. A source noisier than its design sigmas (a centreline fitted on a short or
     sparse cloud, a wandering INS, an ICP that slips) then weighs what its residuals say it
-    is worth; factors never go below 1 (a block is never trusted more than designed).
+    is worth; factors never go below 1 (a block is never trusted more than designed),
+    but for the odometry pairs' along-track component, which goes down to
+    ``Sigmas.odo_pair_along_floor``.
     Residual rows of zero weight (odometry steps switched off) are left out.
     """
     out: dict[str, F64] = {}
@@ -2350,7 +2377,10 @@ def variance_factors(
             den = float(np.sum(red_all[rows]))
             if den > MIN_BLOCK_REDUNDANCY:
                 f[c] = np.sqrt(float(np.sum(w_all[rows] * r_all[rows] ** 2)) / den)
-        out[name] = np.maximum(cur * np.maximum(f, 1.0), 1.0)
+        floor = np.ones(res.shape[1])
+        if name == "odo_pair":
+            floor[0] = pb.sig.odo_pair_along_floor
+        out[name] = np.maximum(cur * np.maximum(f, floor), floor)
     return out
 
 
