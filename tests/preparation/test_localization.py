@@ -437,6 +437,30 @@ def test_grouped_jacobian_matches_column_by_column(results: dict) -> None:
     assert abs(J3 - J1).max() > 1e-3 * abs(J1).max()
 
 
+def test_sparsity_holds_every_derivative_of_the_residuals(results: dict) -> None:
+    """Every residual that moves when one parameter moves is in :func:`sparsity`'s
+    pattern (one column at a time, full evaluations): an entry missing there is a
+    derivative the grouped Jacobian silently drops (the bogie offset's vertical rail
+    motion rows were)."""
+    from worker.preparation.localization import fused as F
+    from worker.preparation.localization.base import Health
+
+    pb = F.build_problem(results["fire_site"]["_inp"], Health(), F.Sigmas())
+    assert pb.nh is not None
+    x = np.random.default_rng(2).normal(0.0, 1e-4, F.n_params(pb))
+    x[F._extra_cols(pb)["bogie"]] = 5.0
+    r0 = F.residuals(x, pb)
+    S = F.sparsity(pb).tocsc()
+    missing = []
+    for c in range(len(x)):
+        xc = x.copy()
+        xc[c] += 1e-4
+        moved = np.flatnonzero(np.abs(F.residuals(xc, pb) - r0) > 1e-9)
+        declared = set(S.indices[S.indptr[c] : S.indptr[c + 1]].tolist())
+        missing += [(c, int(i)) for i in moved if int(i) not in declared]
+    assert not missing, missing[:10]
+
+
 def test_solve_with_reused_jacobian_reaches_the_full_newton_solution(
     results: dict, monkeypatch: pytest.MonkeyPatch
 ) -> None:

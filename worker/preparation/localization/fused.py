@@ -971,7 +971,7 @@ def sparsity(pb: Problem) -> csc_matrix:
         for k in range(n - 1):
             for c in range(2):
                 cols = frame_cols(k) + frame_cols(k + 1) + [s0 + 2 * k + c, s0 + 2 * k + 2 + c]
-                rows.append((r, cols + ([s0 + 4 * n] if c == 0 else [])))
+                rows.append((r, [*cols, s0 + 4 * n]))  # both rows carry the bogie offset
                 r += 1
     if pb.accel is not None:
         for k in range(n - 2):
