@@ -461,6 +461,28 @@ def test_sparsity_holds_every_derivative_of_the_residuals(results: dict) -> None
     assert not missing, missing[:10]
 
 
+def test_the_ins_bias_steps_are_the_last_residual_rows(results: dict) -> None:
+    """The INS wander estimate (:func:`wander_factors`) and its redundancy rows take the
+    bias knots' steps as the residuals' last rows: with the body's sway, bogie and ground
+    priors appended after them it read those instead (the heading wander collapsed from
+    15 to 1.6 mdeg a knot on fire_site-f100-d1-hard-s20, and fused followed the INS's
+    heading drift: 60 mdeg over the run)."""
+    from worker.preparation.localization import fused as F
+    from worker.preparation.localization.base import Health
+
+    pb = F.build_problem(results["fire_site"]["_inp"], Health(), F.Sigmas())
+    assert pb.nh is not None and pb.ground is not None and pb.n_knots >= 2
+    x = np.random.default_rng(3).normal(0.0, 1e-3, F.n_params(pb))
+    steps = (np.diff(F._bias_knots_of(x, pb), axis=0) / pb.bias_step_sigma).ravel()
+    r = F.residuals(x, pb)
+    np.testing.assert_array_equal(r[-len(steps) :], steps)
+    # and the sparsity pattern puts the same two knots' columns in those rows
+    S = F.sparsity(pb).tocsr()
+    assert S.shape[0] == len(r)
+    last = S[-len(steps) :]
+    assert np.all(np.diff(last.indptr) == 2)
+
+
 def test_solve_with_reused_jacobian_reaches_the_full_newton_solution(
     results: dict, monkeypatch: pytest.MonkeyPatch
 ) -> None:

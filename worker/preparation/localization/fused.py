@@ -840,7 +840,9 @@ def _ins_blocks(x: F64, pb: Problem, R: F64, p: F64) -> F64:
 
 
 def _prior_blocks(x: F64, pb: Problem) -> F64:
-    """The priors of the misalignment and of the INS bias knots and their steps."""
+    """The priors of the misalignment, the gyro and accelerometer biases, the body's sway
+    and bogie offset, the cloud's pitch and the ground pairs' drifts, then of the INS bias
+    knots and, last of all rows, their steps (:func:`wander_factors` reads them there)."""
     lever, bore, lat = _misalignment_of(x, pb)
     sig = pb.sig
     out: list[F64] = []
@@ -853,9 +855,6 @@ def _prior_blocks(x: F64, pb: Problem) -> F64:
         acc = _acc_bias_knots_of(x, pb)
         out.append((acc / sig.accel_bias).ravel())
         out.append((np.diff(acc, axis=0) / sig.accel_bias_step).ravel())
-    knots = _bias_knots_of(x, pb)
-    out.append((knots / pb.bias_sigma).ravel())
-    out.append((np.diff(knots, axis=0) / pb.bias_step_sigma).ravel())
     if pb.nh is not None:
         o, d = _sway_of(x, pb)
         v = _sway_rate_of(x, pb)
@@ -868,6 +867,9 @@ def _prior_blocks(x: F64, pb: Problem) -> F64:
             out.append(np.array([_ground_tilt_of(x, pb) / sig.ground_tilt]))
         if sig.ground_pitch_drift > 0:
             out.append(np.array([_ground_pitch_drift_of(x, pb) / sig.ground_pitch_drift]))
+    knots = _bias_knots_of(x, pb)
+    out.append((knots / pb.bias_sigma).ravel())
+    out.append((np.diff(knots, axis=0) / pb.bias_step_sigma).ravel())
     return np.concatenate(out)
 
 
@@ -1006,14 +1008,6 @@ def sparsity(pb: Problem) -> csc_matrix:
         for c in range(3):
             rows.append((r, [acc_cols(j)[c], acc_cols(j + 1)[c]]))
             r += 1
-    for j in range(pb.n_knots):  # bias size
-        for c in knot_cols(j):
-            rows.append((r, [c]))
-            r += 1
-    for j in range(pb.n_knots - 1):  # bias change between knots
-        for c in range(6):
-            rows.append((r, [knot_cols(j)[c], knot_cols(j + 1)[c]]))
-            r += 1
     if pb.nh is not None:  # the sway oscillators (per axis: frame 0, each step), bogie
         v0 = s0 + 2 * n
         for c in range(2):
@@ -1035,6 +1029,14 @@ def sparsity(pb: Problem) -> csc_matrix:
             r += 1
         if "ground_pitch" in extra:
             rows.append((r, [extra["ground_pitch"]]))
+            r += 1
+    for j in range(pb.n_knots):  # bias size
+        for c in knot_cols(j):
+            rows.append((r, [c]))
+            r += 1
+    for j in range(pb.n_knots - 1):  # bias change between knots: the last rows
+        for c in range(6):
+            rows.append((r, [knot_cols(j)[c], knot_cols(j + 1)[c]]))
             r += 1
     ii = np.concatenate([np.full(len(cols), i) for i, cols in rows])
     jj = np.concatenate([np.asarray(cols) for _, cols in rows])
