@@ -208,12 +208,21 @@ class Sigmas:
     #: chain of independent steps: its error is mostly a per-frame registration error of
     #: millimetres plus a slow drift, so its relative pose over 10 or 30 frames is far
     #: better than the lag-1 steps' random walk says (fire_site, 60 frames: 13 mm over 30
-    #: frames where 30 independent 6 mm steps would be 33 mm). Its height and heading stay
-    #: out: the odometry runs without the ground and its pitch drift shows in the height
-    #: over a lag; its heading wanders against a good INS's.
+    #: frames where 30 independent 6 mm steps would be 33 mm). Its height stays out: the
+    #: odometry runs without the ground and its pitch drift shows in the height over a lag.
     odo_pair_lags: tuple[int, ...] = (10, 30)
     odo_pair_t_a: tuple[float, float] = (0.02, 0.006)
     odo_pair_t_b: tuple[float, float] = (0.0002, 0.0002)
+    #: The pairs' heading, sigma ``a + b * lag`` (rad), shared as the positions are: a
+    #: scan-to-map registration's heading over 10 and 30 frames is good to 5-20 mdeg on
+    #: dense and sparse scenes alike (RMS over nine seeds-20 matrix cells: 5-18 and 7-20
+    #: mdeg; 45-53 on a sparse hard one, which its variance factor then says), nearly
+    #: as good over 30 frames as over 10, where the gyros' integral drifts by their bias
+    #: (a 14 deg/h gyro, 2.8 sigma of the hard profile's, with the INS's heading wander
+    #: read as its bias: fused 22-29 mdeg over 30 frames against KISS-ICP's 7-12 on
+    #: fire_site-f100-d1-hard-s20 and switch-f60-d1-hard-s20). 0 leaves it out.
+    odo_pair_r_a: float = 0.01 * DEG
+    odo_pair_r_b: float = 0.0002 * DEG
     #: The pairs' along-track sigma may be scaled down to this share of its design by
     #: their own residuals (:func:`variance_factors`; every other block's factor stays
     #: >= 1): the design's 2 cm is what a degenerate scene's registration slips, and on a
@@ -954,7 +963,7 @@ def sparsity(pb: Problem) -> csc_matrix:
                 r += 1
     if pb.odo_pairs is not None:
         for k, j in zip(pb.odo_pairs["k"], pb.odo_pairs["j"], strict=True):
-            for _ in range(3):
+            for _ in range(ODO_PAIR_COMPONENTS):
                 rows.append((r, frame_cols(int(k)) + frame_cols(int(j))))
                 r += 1
     gyro_bias = list(range(_gyro_bias_col(n, pb.n_knots), _acc_bias_col(n, pb.n_knots)))
@@ -1648,8 +1657,8 @@ def _odometry_pairs(
     shorter than two lags: its few pairs overlap in most steps and count as one). A lag
     longer than the run is replaced by the run's whole length (``sig.odo_pair_whole_run``:
     one pair) where the odometry is not degenerate along the track.
-    Returns k, j (Q,), T_k_j (Q, 4, 4) and w (Q, 2): 1/sigma of frame j's position in
-    frame k along the track and laterally."""
+    Returns k, j (Q,), T_k_j (Q, 4, 4) and w (Q, 3): 1/sigma of frame j's position in
+    frame k along the track and laterally, and of its heading (``sig.odo_pair_r_a``)."""
     n = len(inp.frames)
     lags = sorted({int(L) for L in sig.odo_pair_lags if 0 < int(L) < n})
     if (
@@ -1676,7 +1685,8 @@ def _odometry_pairs(
             continue
         share = np.sqrt(min(len(k), L))
         sigma = (np.asarray(sig.odo_pair_t_a) + L * np.asarray(sig.odo_pair_t_b)) * share
-        w = np.tile(1.0 / sigma, (len(k), 1))
+        sigma_h = (sig.odo_pair_r_a + L * sig.odo_pair_r_b) * share
+        w = np.tile(np.r_[1.0 / sigma, 1.0 / sigma_h if sig.odo_pair_r_a > 0 else 0.0], (len(k), 1))
         if degenerate:
             w[:, 0] = 0.0
         ks.append(k)
@@ -1747,6 +1757,10 @@ MIN_WHOLE_RUN_LAG = 4
 MIN_CLOSURES = 3
 
 
+#: Residual components of an odometry pair (:func:`_odometry_pair_residuals`).
+ODO_PAIR_COMPONENTS = 4
+
+
 def _fine_pairs(
     inp: LocalizationInput,
     k: NDArray[np.int64],
@@ -1786,21 +1800,27 @@ def _fine_pairs(
 
 
 def _odometry_pair_residuals(pb: Problem, R: F64, p: F64) -> F64:
-    """(Q, 3) normalised residuals of the odometry pairs: frame j's position in frame k
+    """(Q, 4) normalised residuals of the odometry pairs: frame j's position in frame k
     against the odometry's, along the track, laterally from KISS-ICP and laterally from the
-    fine registration (frame k's axes; each pair's other lateral column is 0). The two
-    lateral sources are separate components so that each gets its own variance factor: a
-    sparse scan's registration can sit 2-10 cm from the truth with a formal sigma of 5 mm
+    fine registration (frame k's axes; each pair's other lateral column is 0), and frame
+    j's heading in frame k against KISS-ICP's. The two lateral sources are separate
+    components so that each gets its own variance factor: a sparse scan's registration can
+    sit 2-10 cm from the truth with a formal sigma of 5 mm
     (station-f35-d0.3-hard-s0-bogies-blind), and its residuals then say so."""
     g = pb.odo_pairs
     assert g is not None
-    B_t = np.einsum("nji,nj->ni", R[g["k"]], p[g["j"]] - p[g["k"]])
-    E_t = (B_t[:, :2] - g["T_k_j"][:, :2, 3]) * g["w"]
+    Rk = R[g["k"]]
+    B_t = np.einsum("nji,nj->ni", Rk, p[g["j"]] - p[g["k"]])
+    E_t = (B_t[:, :2] - g["T_k_j"][:, :2, 3]) * g["w"][:, :2]
     fine = g["fine"]
-    out = np.zeros((len(E_t), 3))
+    out = np.zeros((len(E_t), 4))
     out[:, 0] = E_t[:, 0]
     out[~fine, 1] = E_t[~fine, 1]
     out[fine, 2] = E_t[fine, 1]
+    if np.any(g["w"][:, 2]):
+        M_t = np.swapaxes(g["T_k_j"][:, :3, :3], 1, 2)
+        E_r = _log_rotation(M_t @ np.swapaxes(Rk, 1, 2) @ R[g["j"]])
+        out[:, 3] = E_r[:, 2] * g["w"][:, 2]
     return out / pb.s("odo_pair")
 
 
@@ -2269,7 +2289,7 @@ def _block_sizes(pb: Problem) -> list[tuple[str, int, int]]:
     if pb.vel is not None:
         sizes.append(("ins_v", len(pb.vel["k"]), 2))
     if pb.odo_pairs is not None:
-        sizes.append(("odo_pair", len(pb.odo_pairs["k"]), 3))
+        sizes.append(("odo_pair", len(pb.odo_pairs["k"]), ODO_PAIR_COMPONENTS))
     if pb.gyro is not None:
         sizes.append(("gyro", n - 1, 3))
     if pb.nh is not None:
@@ -2591,12 +2611,13 @@ def information(pb: Problem, x: F64) -> PoseInformation:
     c = pb.sig.huber
     w = np.where(a <= c, 1.0, c / np.maximum(a, 1e-12))
     if pb.odo_pairs is not None:
-        # KISS-ICP's pairs (along, lateral) are its poses' differences, the sums of its
-        # steps: they shape the estimate but are no new information. The fine pairs (third
-        # column) are registrations of their own, scan against scan: they are.
+        # KISS-ICP's pairs (along, lateral, heading) are its poses' differences, the sums
+        # of its steps: they shape the estimate but are no new information. The fine pairs
+        # (third column) are registrations of their own, scan against scan: they are.
         i0 = _block_offsets(pb)["odo_pair"]
         q = np.arange(len(pb.odo_pairs["k"]))
-        w[(i0 + 3 * q[:, None] + np.array([0, 1])).ravel()] = 0.0
+        kiss = np.array([0, 1, 3])
+        w[(i0 + ODO_PAIR_COMPONENTS * q[:, None] + kiss).ravel()] = 0.0
     J, w = _with_scan_errors(pb, J, w)
     A = (J.T.multiply(w[None, :]).tocsc() @ J).tocsc()
     meas = np.concatenate([b.ravel() for b in measurement_blocks(pb, x).values()])
