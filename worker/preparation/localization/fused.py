@@ -1293,7 +1293,7 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
     if rail is None:
         # Nothing else fixes the absolute attitude: the INS's is taken as is.
         bias_sigma[:3] = 0.005 * DEG
-    odo_pairs = _odometry_pairs(inp, w_t, w_r, zupt, degenerate, health, sig, T_first)
+    odo_pairs = _odometry_pairs(inp, w_t, w_r, zupt, degenerate, health, sig, T_first, heading_err)
     accel = _accel_steps(inp, gyro, health, sig)
     yaw = 0.0 if odo_pairs is None else odo_pairs["yaw_offset"]
     pitch = 0.0 if ground is None else ground["pitch_offset"]
@@ -1644,9 +1644,13 @@ def _odometry_pairs(
     health: Health,
     sig: Sigmas,
     T_odom: F64 | None = None,
+    heading: HeadingErrors | None = None,
 ) -> dict | None:
-    """KISS-ICP's relative positions over ``sig.odo_pair_lags`` frames as measurements
-    (its poses, or ``T_odom`` (n, 4, 4): the same with the first frames refined).
+    """KISS-ICP's relative positions and headings over ``sig.odo_pair_lags`` frames as
+    measurements (its poses, or ``T_odom`` (n, 4, 4): the same with the first frames
+    refined). The heading's sigma is at least what the heading hat measured of the
+    odometry's (``heading``, over its lag, scaled to each lag as a random walk): an
+    odometry that misses a slow curve (0.57 deg over 10 frames) must not turn a good INS.
 
     A pair (k, k + lag) is kept when every step between its frames is a full-weight ICP
     step (no skipped, slipping or degenerate step, no standstill: those steps' own
@@ -1685,7 +1689,10 @@ def _odometry_pairs(
             continue
         share = np.sqrt(min(len(k), L))
         sigma = (np.asarray(sig.odo_pair_t_a) + L * np.asarray(sig.odo_pair_t_b)) * share
-        sigma_h = (sig.odo_pair_r_a + L * sig.odo_pair_r_b) * share
+        sigma_h = sig.odo_pair_r_a + L * sig.odo_pair_r_b
+        if heading is not None:
+            sigma_h = max(sigma_h, math.sqrt(heading.odometry * L / heading.lag))
+        sigma_h *= share
         w = np.tile(np.r_[1.0 / sigma, 1.0 / sigma_h if sig.odo_pair_r_a > 0 else 0.0], (len(k), 1))
         if degenerate:
             w[:, 0] = 0.0
