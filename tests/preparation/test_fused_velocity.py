@@ -23,9 +23,11 @@ from geometry.poses import PoseTrack, reexpress
 from tests.synth_fixtures import synth_sequence, true_ego_input
 from worker.preparation.localization.base import Health
 from worker.preparation.localization.fused import (
+    FACTOR_FLOORS,
     Problem,
     Sigmas,
     build_problem,
+    factor_floors,
     measurement_blocks,
     n_params,
     variance_factors,
@@ -154,6 +156,9 @@ def test_odometry_pairs_along_the_track_may_be_trusted_beyond_their_design(
     assert floor <= along < 0.6, factors["odo_pair"]
     assert np.all(rest >= 1.0), factors["odo_pair"]
     assert all(np.all(v >= 1.0) for k, v in factors.items() if k != "odo_pair"), factors
+    # the floors' table names real fields, and only this component has one
+    assert np.array_equal(factor_floors(Sigmas(), "odo_pair", 4), [floor, 1.0, 1.0, 1.0])
+    assert all(hasattr(Sigmas(), f) for per in FACTOR_FLOORS.values() for f in per.values())
     # with the floor at 1 the pairs are trusted as designed, no more
     pb1, x1 = _true_state(
         curve_lever, lever=(LEVER_M, 0.0, 0.0), sigmas=Sigmas(odo_pair_along_floor=1.0)

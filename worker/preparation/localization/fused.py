@@ -2380,8 +2380,7 @@ def variance_factors(
     designed. A source noisier than its design sigmas (a centreline fitted on a short or
     sparse cloud, a wandering INS, an ICP that slips) then weighs what its residuals say it
     is worth; factors never go below 1 (a block is never trusted more than designed),
-    but for the odometry pairs' along-track component, which goes down to
-    ``Sigmas.odo_pair_along_floor``.
+    but for the components of :data:`FACTOR_FLOORS`, which go down to their floor.
     Residual rows of zero weight (odometry steps switched off) are left out.
     """
     out: dict[str, F64] = {}
@@ -2406,11 +2405,22 @@ def variance_factors(
             den = float(np.sum(red_all[rows]))
             if den > MIN_BLOCK_REDUNDANCY:
                 f[c] = np.sqrt(float(np.sum(w_all[rows] * r_all[rows] ** 2)) / den)
-        floor = np.ones(res.shape[1])
-        if name == "odo_pair":
-            floor[0] = pb.sig.odo_pair_along_floor
+        floor = factor_floors(pb.sig, name, res.shape[1])
         out[name] = np.maximum(cur * np.maximum(f, floor), floor)
     return out
+
+
+#: Block components whose variance factor may go below 1, each down to the ``Sigmas``
+#: field named: {block: {component: field}}. Every other factor stays >= 1.
+FACTOR_FLOORS: dict[str, dict[int, str]] = {"odo_pair": {0: "odo_pair_along_floor"}}
+
+
+def factor_floors(sig: Sigmas, block: str, components: int) -> F64:
+    """(components,) the least variance factor of each of ``block``'s components."""
+    floor = np.ones(components)
+    for c, field_name in FACTOR_FLOORS.get(block, {}).items():
+        floor[c] = float(getattr(sig, field_name))
+    return floor
 
 
 #: Least redundancy of a block component for a variance factor from redundancy numbers.
