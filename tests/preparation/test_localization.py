@@ -481,6 +481,14 @@ def test_the_ins_bias_steps_are_the_last_residual_rows(results: dict) -> None:
     assert S.shape[0] == len(r)
     last = S[-len(steps) :]
     assert np.all(np.diff(last.indptr) == 2)
+    # the rotation smoothness estimate (motion_factors) reads its rows where they are
+    R = F._unpack(x, pb)[0]
+    w = F._log_rotation(np.swapaxes(R[:-1], 1, 2) @ R[1:])
+    rot_acc = np.asarray(pb.sig.rot_acc) * pb.s("rot_acc")
+    i0 = F._smoothness_offset(pb)
+    np.testing.assert_allclose(
+        r[i0 : i0 + 3 * (pb.n - 2)], ((w[1:] - w[:-1]) / rot_acc).ravel(), rtol=1e-12
+    )
 
 
 def test_solve_with_reused_jacobian_reaches_the_full_newton_solution(
