@@ -34,12 +34,19 @@ from worker.preparation.localization.fused import (
 )
 
 
+def _curve(
+    tmp_path_factory: pytest.TempPathFactory, name: str, frames: int, seed: int, **ins: object
+) -> Path:
+    """A sparse tight curve with the good INS profile, ``ins`` overriding its errors."""
+    return synth_sequence(
+        tmp_path_factory.mktemp(name), "seq", scene="tight_curve", frames=frames, scale=0.05,
+        seed=seed, lidar_density=0.3, ins_profile="good", cameras=(), ins_overrides=ins,
+    )  # fmt: skip
+
+
 @pytest.fixture(scope="module")
 def short_curve(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return synth_sequence(
-        tmp_path_factory.mktemp("curve"), "seq", scene="tight_curve", frames=12, scale=0.05,
-        seed=1, lidar_density=0.3, ins_profile="good", cameras=(),
-    )  # fmt: skip
+    return _curve(tmp_path_factory, "curve", 12, 1)
 
 
 #: An INS this far ahead of the base (m): on the curve's 0.44 deg over 3 s its lever turns
@@ -49,11 +56,7 @@ LEVER_M = 8.0
 
 @pytest.fixture(scope="module")
 def curve_lever(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return synth_sequence(
-        tmp_path_factory.mktemp("curve_lever"), "seq", scene="tight_curve", frames=30,
-        scale=0.05, seed=3, lidar_density=0.3, ins_profile="good", cameras=(),
-        ins_overrides={"lever_arm_m": (LEVER_M, 0.0, 0.0)},
-    )  # fmt: skip
+    return _curve(tmp_path_factory, "curve_lever", 30, 3, lever_arm_m=(LEVER_M, 0.0, 0.0))
 
 
 #: A heading mounting error far beyond any profile's (deg): on the INS's own forward axis
@@ -64,11 +67,9 @@ BORESIGHT_YAW_DEG = 5.0
 
 @pytest.fixture(scope="module")
 def curve_boresight(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return synth_sequence(
-        tmp_path_factory.mktemp("curve_boresight"), "seq", scene="tight_curve", frames=12,
-        scale=0.05, seed=1, lidar_density=0.3, ins_profile="good", cameras=(),
-        ins_overrides={"boresight_deg": (0.0, 0.0, BORESIGHT_YAW_DEG)},
-    )  # fmt: skip
+    return _curve(
+        tmp_path_factory, "curve_boresight", 12, 1, boresight_deg=(0.0, 0.0, BORESIGHT_YAW_DEG)
+    )
 
 
 def _true_state(
