@@ -213,14 +213,16 @@ class Sigmas:
     odo_pair_lags: tuple[int, ...] = (10, 30)
     odo_pair_t_a: tuple[float, float] = (0.02, 0.006)
     odo_pair_t_b: tuple[float, float] = (0.0002, 0.0002)
-    #: The pairs' heading, sigma ``a + b * lag`` (rad), shared as the positions are: a
-    #: scan-to-map registration's heading over 10 and 30 frames is good to 5-20 mdeg on
-    #: dense and sparse scenes alike (RMS over nine seeds-20 matrix cells: 5-18 and 7-20
-    #: mdeg; 45-53 on a sparse hard one, which its variance factor then says), nearly
-    #: as good over 30 frames as over 10, where the gyros' integral drifts by their bias
-    #: (a 14 deg/h gyro, 2.8 sigma of the hard profile's, with the INS's heading wander
-    #: read as its bias: fused 22-29 mdeg over 30 frames against KISS-ICP's 7-12 on
-    #: fire_site-f100-d1-hard-s20 and switch-f60-d1-hard-s20). 0 leaves it out.
+    #: The pairs' heading, sigma ``a + b * lag`` (rad), shared as the positions are, at
+    #: least the heading hat's measure of the odometry's heading error scaled to the lag
+    #: (:func:`_odometry_pairs`): a scan-to-map registration's heading over 10 and 30
+    #: frames is good to 5-20 mdeg on dense and sparse scenes alike (RMS over nine
+    #: seeds-20 matrix cells: 5-18 and 7-20 mdeg; 45-53 on a sparse hard one), nearly as
+    #: good over 30 frames as over 10, where the gyros' integral drifts with their bias.
+    #: C2 anchor error with / without (fused alone): tight_curve-f100-d0.3-osdar23-s20
+    #: 3.47 / 4.47 px, fire_site-f100-d1-hard-s20 2.57 / 3.28,
+    #: klein_flottbek-f60-d0.3-hard-s20 2.41 / 2.59, fire_site-f60-d1-osdar23-s20 0.79 /
+    #: 0.63. 0 leaves it out.
     odo_pair_r_a: float = 0.01 * DEG
     odo_pair_r_b: float = 0.0002 * DEG
     #: The pairs' along-track sigma may be scaled down to this share of its design by
