@@ -165,3 +165,25 @@ def test_odometry_pairs_along_the_track_may_be_trusted_beyond_their_design(
         curve_lever, lever=(LEVER_M, 0.0, 0.0), sigmas=Sigmas(odo_pair_along_floor=1.0)
     )
     assert variance_factors(pb1, x1)["odo_pair"][0] == pytest.approx(1.0)
+
+
+def test_odometry_pairs_carry_the_heading(curve_lever: Path) -> None:
+    """The pairs' fourth component is frame j's heading in frame k against KISS-ICP's: at
+    the true poses within a few sigmas, and a turn of every frame from the middle on by
+    a tenth of a degree moves exactly the pairs that straddle the middle, by that turn
+    over their sigma."""
+    pb, x = _true_state(curve_lever, lever=(LEVER_M, 0.0, 0.0))
+    g = pb.odo_pairs
+    assert g is not None and np.all(g["w"][:, 2] > 0)
+    r0 = measurement_blocks(pb, x)["odo_pair"][:, 3]
+    assert np.sqrt(np.mean(r0**2)) < 3.0, r0
+    n, mid, turn = pb.n, pb.n // 2, np.radians(0.1)
+    xt = x.copy()
+    xp = xt[: 6 * n].reshape(n, 6)
+    R = Rotation.from_rotvec(xp[mid:, :3]) * Rotation.from_matrix(pb.R0[mid:])
+    R = Rotation.from_rotvec([0.0, 0.0, turn]) * R  # about the world's vertical
+    xp[mid:, :3] = (R * Rotation.from_matrix(pb.R0[mid:]).inv()).as_rotvec()
+    shift = measurement_blocks(pb, xt)["odo_pair"][:, 3] - r0
+    straddle = (g["k"] < mid) & (g["j"] >= mid)
+    np.testing.assert_allclose(shift[straddle], turn * g["w"][straddle, 2], rtol=0.02)
+    assert np.max(np.abs(shift[~straddle])) < 1e-6
