@@ -1822,7 +1822,7 @@ def _odometry_pair_residuals(pb: Problem, R: F64, p: F64) -> F64:
     B_t = np.einsum("nji,nj->ni", Rk, p[g["j"]] - p[g["k"]])
     E_t = (B_t[:, :2] - g["T_k_j"][:, :2, 3]) * g["w"][:, :2]
     fine = g["fine"]
-    out = np.zeros((len(E_t), 4))
+    out = np.zeros((len(E_t), ODO_PAIR_COMPONENTS))
     out[:, 0] = E_t[:, 0]
     out[~fine, 1] = E_t[~fine, 1]
     out[fine, 2] = E_t[fine, 1]
