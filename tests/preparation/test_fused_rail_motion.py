@@ -174,3 +174,30 @@ def test_a_pitched_cloud_is_estimated_with_the_poses_not_followed(switch_30: Pat
     assert abs(est[1] - est[0] - 1e-3) < 0.2e-3, est
     # the poses' last height moves by far less than the climb over a pair, c x
     assert abs(z_end[1] - z_end[0]) < 0.25 * 1e-3 * length, z_end
+
+
+def test_the_bogie_offset_is_free_only_where_the_turn_measures_it() -> None:
+    """The base's distance ahead of its bogies moves it sideways by itself times each
+    step's turn: a straight (0.06 deg over 35 frames) measures it to 6 m, too little to
+    free it; a curve (10 deg over 60 frames) to 4.5 cm, free; a short or degenerate run
+    keeps it pinned whatever its turn."""
+    from math import radians
+
+    from worker.preparation.localization.fused import (
+        BOGIE_PINNED_M,
+        _bogie_sigma,
+        bogie_information,
+    )
+
+    sig = Sigmas()
+    straight = bogie_information(radians(0.06), 34, sig.rail_motion_lat)
+    curve = bogie_information(radians(10.0), 59, sig.rail_motion_lat)
+    assert 0.02 < straight < 0.04, straight  # 1 / 6 m squared
+    assert 400 < curve < 600, curve  # 1 / 4.5 cm squared
+    far = Health(metrics={"ins_travelled_m": 60.0})
+    assert _bogie_sigma(far, False, sig, radians(0.06), 34) == BOGIE_PINNED_M
+    assert _bogie_sigma(far, False, sig, radians(10.0), 59) == sig.bogie_offset
+    assert _bogie_sigma(far, True, sig, radians(10.0), 59) == BOGIE_PINNED_M
+    short = Health(metrics={"ins_travelled_m": 10.0})
+    assert _bogie_sigma(short, False, sig, radians(10.0), 59) == BOGIE_PINNED_M
+    assert far.metrics["fused_bogie_information_m2"] == pytest.approx(curve)

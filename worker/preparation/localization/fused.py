@@ -1330,7 +1330,12 @@ def build_problem(inp: LocalizationInput, health: Health, sig: Sigmas) -> Proble
         vel=_velocity_steps(inp, ins, health, sig) if n >= 2 else None,
         odo_pairs=odo_pairs,
         gyro=gyro,
-        nh=_rail_motion(inp, n, sig, _bogie_sigma(health, degenerate, sig)),
+        nh=_rail_motion(
+            inp,
+            n,
+            sig,
+            _bogie_sigma(health, degenerate, sig, math.radians(heading), n - 1),
+        ),
         accel=accel,
         n_acc_knots=0 if accel is None else accel["n_knots"],
         acc_knot_i=np.zeros(0, dtype=np.int64) if accel is None else accel["knot_i"],
@@ -1435,14 +1440,38 @@ def _accel_residuals(x: F64, pb: Problem, R: F64, p: F64) -> F64:
 #: Shortest run (m, the INS's travelled distance) on which the base's distance ahead of
 #: its bogies is estimated (:attr:`Sigmas.bogie_offset`); shorter runs keep it at 0.
 BOGIE_MIN_TRAVEL_M = 20.0
+#: Least information (m^-2) the run's turn gives on the bogie offset for it to be
+#: estimated: the offset moves the base sideways by itself times each step's turn, so
+#: the lateral rail-motion rows measure it with information sum (turn_k / sigma_lat)^2,
+#: taken as the run's heading change spread evenly over its steps. 1 m^-2: the turn alone
+#: fixes the offset to 1 m. Where it does not (a straight), a free offset only gives the
+#: heading a way to take up the lateral steps' errors (station-f35-d0.3-hard-s10-bogies-
+#: blind, 0.06 deg of turn over 20 m: heading over 30 frames 0.050 deg free, 0.022 pinned,
+#: the INS 0.040); in a curve (tight_curve, 10 deg over 60 frames: 500 m^-2) it is free.
+BOGIE_MIN_INFORMATION = 1.0
 #: The bogie offset's prior sigma (m) where it is not estimated.
 BOGIE_PINNED_M = 1e-6
 
 
-def _bogie_sigma(health: Health, degenerate: bool, sig: Sigmas) -> float:
-    """The prior sigma (m) of the base's distance ahead of its bogies on this run."""
+def bogie_information(heading_change_rad: float, n_steps: int, sigma_lat_m: float) -> float:
+    """Information (m^-2) on the base's distance ahead of its bogies from a run that turns
+    by ``heading_change_rad`` evenly over ``n_steps`` steps, lateral rows of
+    ``sigma_lat_m``: ``n (dpsi / n)^2 / sigma^2``."""
+    if n_steps < 1 or sigma_lat_m <= 0.0:
+        return 0.0
+    return float(heading_change_rad) ** 2 / n_steps / sigma_lat_m**2
+
+
+def _bogie_sigma(
+    health: Health, degenerate: bool, sig: Sigmas, heading_change_rad: float, n_steps: int
+) -> float:
+    """The prior sigma (m) of the base's distance ahead of its bogies on this run: free
+    on a run long enough (:data:`BOGIE_MIN_TRAVEL_M`), not degenerate along the track, and
+    turning enough to measure it (:data:`BOGIE_MIN_INFORMATION`); pinned at 0 otherwise."""
     travelled = float(health.metrics.get("ins_travelled_m", 0.0))
-    free = not degenerate and travelled >= BOGIE_MIN_TRAVEL_M
+    info = bogie_information(heading_change_rad, n_steps, sig.rail_motion_lat)
+    health.metrics["fused_bogie_information_m2"] = info
+    free = not degenerate and travelled >= BOGIE_MIN_TRAVEL_M and info >= BOGIE_MIN_INFORMATION
     return sig.bogie_offset if free else BOGIE_PINNED_M
 
 
