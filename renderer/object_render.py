@@ -531,27 +531,44 @@ def resample_var_px2(mx: F32, my: F32, alpha: F32, s: int) -> float | None:
     ``(phi_u, phi_v)`` a step's line spread gets ``phi (1 - phi)`` along each axis (two
     taps, weights ``1 - phi`` and ``phi``, one sub-sample apart), ``(n_u^2 phi_u (1 -
     phi_u) + n_v^2 phi_v (1 - phi_v)) / s^2`` across an edge of unit normal ``n``, here
-    weighted over the render's edges by the gradient of its coverage ``alpha`` (h, w).
-    Where the lens map's phase hardly changes over the object (a camera's centre, s = 1)
-    this is far from the average ``1 / (6 s^2)`` (0.088-0.140 px^2 at s = 1 where the
-    average says 0.167: the composite, giving the frame's blur less the render's own,
-    left such objects 0.7-0.8x as soft as the frame). None without edges."""
-    h, w = alpha.shape
+    averaged along the outline of the coverage ``alpha`` (h, w) (its contours at 0.5, each
+    point's normal from the points 3 to either side, its phase term the mean over its
+    pixel's sub-samples). Where the lens map's phase hardly changes over the object (a
+    camera's centre, s = 1) this is far from the average ``1 / (6 s^2)`` (0.088-0.161 px^2
+    at s = 1 where the average says 0.167: the composite, giving the frame's blur less the
+    render's own, left such objects too sharp). The outline rather than the coverage's
+    gradient over the whole ROI: 78 -> 6 ms on a 2200 x 1200 ROI. None without an outline.
+    """
+    inside = np.ascontiguousarray(alpha >= 0.5, dtype=np.uint8)
+    contours, _ = cv2.findContours(inside, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    pts, tangents = [], []
+    for c in contours:
+        c = c[:, 0, :].astype(np.float64)  # (n, 2) u, v of a closed outline
+        if len(c) < 8:
+            continue
+        pts.append(c)
+        tangents.append(np.roll(c, -3, axis=0) - np.roll(c, 3, axis=0))
+    if not pts:
+        return None
+    p = np.concatenate(pts).astype(np.intp)
+    t = np.concatenate(tangents)
+    t2 = t * t
+    norm2 = t2.sum(axis=1)
+    ok = norm2 > 0
+    p, t2, norm2 = p[ok], t2[ok], norm2[ok]
+    if not len(p):
+        return None
+    # the normal's components squared: n_u^2 = t_v^2 / |t|^2, n_v^2 = t_u^2 / |t|^2
+    nu2, nv2 = t2[:, 1] / norm2, t2[:, 0] / norm2
+    k = np.arange(s)
+    rows = (s * p[:, 1:2] + k[None]).repeat(s, axis=1)  # (m, s^2) each pixel's sub-samples
+    cols = np.tile(s * p[:, 0:1] + k[None], (1, s))
     q = []
     for m in (mx, my):
-        f = m - np.floor(m)
-        v = (f * (1.0 - f)).astype(np.float32)
-        if s > 1:  # each pixel's mean over its s x s sub-samples
-            v = cv2.resize(v, (w, h), interpolation=cv2.INTER_AREA)
-        q.append(v)
-    gu = cv2.Sobel(alpha, cv2.CV_32F, 1, 0, ksize=3)
-    gv = cv2.Sobel(alpha, cv2.CV_32F, 0, 1, ksize=3)
-    mag = cv2.magnitude(gu, gv)
-    total = float(mag.sum())
-    if total <= 1e-6:
-        return None
-    num = np.divide(gu * gu * q[0] + gv * gv * q[1], mag, out=np.zeros_like(mag), where=mag > 0)
-    return float(num.sum()) / total / (s * s)
+        v = np.asarray(m[rows, cols], np.float64)
+        f = v - np.floor(v)
+        q.append((f * (1.0 - f)).mean(axis=1))
+    return float(np.mean(nu2 * q[0] + nv2 * q[1])) / (s * s)
 
 
 def subpixel_map(
